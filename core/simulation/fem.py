@@ -1,0 +1,287 @@
+"""Element kinematics and constitutive laws for linear tetrahedra.
+
+Everything here works on *component-major* arrays: a field of 3x3 matrices over E
+elements is stored as a (9, E) array with row ``3*i + k`` holding entry (i, k). That
+keeps every per-element operation a handful of contiguous vector operations, which
+is what makes a 13x5x5 replay of a minute run in seconds on two cores.
+
+The deformation gradient is linear in the node positions, ``F = G x``, with G a
+sparse (9E, 3N) matrix. Internal forces follow as ``f = -G^T (V * P(F))``: the
+gradient of the elastic energy ``sum_e V_e Psi(F_e)`` (Sifakis & Barbic 2012,
+"FEM simulation of 3D deformable solids", Sec. 4).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from core.errors import SimulationError
+
+__all__ = [
+    "ElementData",
+    "build_elements",
+    "lame_parameters",
+    "linear_stiffness",
+    "polar_rotation",
+    "pk1_corotational",
+    "pk1_stable_neo_hookean",
+    "corotated_strain",
+    "stress_linear",
+    "rotate_stress",
+]
+
+
+@dataclass(frozen=True)
+class ElementData:
+    """Per-element constants of a tetrahedral mesh.
+
+    Attributes:
+        G: (9E, 3N) CSR matrix with ``vec(F) = G @ x.ravel()``; row ``c*E + e`` is
+            component c (row-major 3x3) of element e.
+        GT: its transpose, CSR.
+        volume: (E,) float64 rest volumes in m^3.
+        grad_n: (E, 4, 3) float64 shape-function gradients at rest (1/m).
+    """
+
+    G: sp.csr_matrix
+    GT: sp.csr_matrix
+    volume: np.ndarray
+    grad_n: np.ndarray
+
+    @property
+    def n_elements(self) -> int:
+        return int(self.volume.shape[0])
+
+    def deformation_gradient(self, x: np.ndarray) -> np.ndarray:
+        """(9, E) deformation gradients for node positions ``x`` (N, 3) in m."""
+        return (self.G @ x.reshape(-1)).reshape(9, -1)
+
+    def nodal_forces(self, P: np.ndarray) -> np.ndarray:
+        """(N, 3) nodal forces in N from first Piola-Kirchhoff stresses P (9, E) in Pa."""
+        return -(self.GT @ (P * self.volume).reshape(-1)).reshape(-1, 3)
+
+
+def build_elements(nodes: np.ndarray, tets: np.ndarray) -> ElementData:
+    """Precompute shape-function gradients, volumes and the operator G.
+
+    Args:
+        nodes: (N, 3) float64 rest positions, m.
+        tets: (E, 4) int64, positively oriented.
+
+    Raises:
+        SimulationError: on degenerate (near-zero or negative volume) elements.
+    """
+    n_nodes, n_el = nodes.shape[0], tets.shape[0]
+    Dm = (nodes[tets[:, 1:]] - nodes[tets[:, :1]]).transpose(0, 2, 1)  # (E,3,3), columns x_a - x_0
+    det = np.linalg.det(Dm)
+    scale = np.abs(Dm).max() ** 3
+    if np.any(det <= 1e-12 * scale):
+        raise SimulationError(f"{int(np.sum(det <= 1e-12 * scale))} degenerate or inverted tetrahedra")
+    Dm_inv = np.linalg.inv(Dm)
+    grad_n = np.empty((n_el, 4, 3))
+    grad_n[:, 1:, :] = Dm_inv  # dN_a/dX_k = Dm_inv[a-1, k]
+    grad_n[:, 0, :] = -Dm_inv.sum(axis=1)
+    volume = det / 6.0
+
+    rows, cols, vals = [], [], []
+    e = np.arange(n_el)
+    for i in range(3):
+        for k in range(3):
+            comp = 3 * i + k
+            for a in range(4):
+                rows.append(comp * n_el + e)
+                cols.append(3 * tets[:, a] + i)
+                vals.append(grad_n[:, a, k])
+    G = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(9 * n_el, 3 * n_nodes),
+    )
+    return ElementData(G=G, GT=G.T.tocsr(), volume=volume, grad_n=grad_n)
+
+
+def lame_parameters(youngs_modulus, poisson_ratio) -> tuple[np.ndarray, np.ndarray]:
+    """Lamé parameters (mu, lambda) in Pa from Young's modulus (Pa) and Poisson's ratio.
+
+    Raises:
+        SimulationError: unless E > 0 and -1 < nu < 0.5.
+    """
+    E = np.asarray(youngs_modulus, dtype=np.float64)
+    nu = float(poisson_ratio)
+    if np.any(~np.isfinite(E)) or np.any(E <= 0):
+        raise SimulationError(f"Young's modulus must be positive and finite, got {youngs_modulus}")
+    if not (-1.0 < nu < 0.5):
+        raise SimulationError(f"Poisson's ratio must lie in (-1, 0.5), got {poisson_ratio}")
+    mu = E / (2.0 * (1.0 + nu))
+    lam = E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    return mu, lam
+
+
+def linear_stiffness(elements: ElementData, mu: np.ndarray, lam: np.ndarray) -> sp.csr_matrix:
+    """Small-strain stiffness matrix K = G^T D G, (3N, 3N) CSR, N/m.
+
+    ``D`` is block-diagonal with the isotropic tangent
+    ``dP_ij/dF_kl = mu (d_ik d_jl + d_il d_jk) + lambda d_ij d_kl`` scaled by the volume.
+
+    Args:
+        mu, lam: (E,) per-element Lamé parameters in Pa (per-element materials allowed).
+    """
+    n_el = elements.n_elements
+    w_mu = np.broadcast_to(mu, (n_el,)) * elements.volume
+    w_lam = np.broadcast_to(lam, (n_el,)) * elements.volume
+    e = np.arange(n_el)
+    rows, cols, vals = [], [], []
+    for i in range(3):
+        for j in range(3):
+            c = 3 * i + j
+            rows += [c * n_el + e, c * n_el + e]
+            cols += [c * n_el + e, (3 * j + i) * n_el + e]
+            vals += [w_mu, w_mu]
+            if i == j:
+                for k in range(3):
+                    rows.append(c * n_el + e)
+                    cols.append((4 * k) * n_el + e)
+                    vals.append(w_lam)
+    D = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(9 * n_el, 9 * n_el)
+    )
+    K = elements.GT @ D @ elements.G
+    return ((K + K.T) * 0.5).tocsr()
+
+
+def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    x, y, z, w = q
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    return np.stack(
+        [
+            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+        ]
+    )
+
+
+def polar_rotation(F: np.ndarray, q: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Rotational part of F by Müller et al. 2016 ("A robust method to extract the
+    rotational part of deformations", MIG '16), warm-started from quaternions q.
+
+    Args:
+        F: (9, E) deformation gradients (component-major, row-major 3x3).
+        q: (4, E) quaternions (x, y, z, w) from the previous call (identity at rest).
+        iterations: fixed-point iterations; 2-3 suffice when warm-started each step.
+
+    Returns:
+        (R, q): R (9, E) rotations, q (4, E) the updated quaternions. Robust to
+        inverted elements (no SVD sign fixing needed).
+    """
+    q = q.copy()
+    cols = [(F[j], F[3 + j], F[6 + j]) for j in range(3)]
+    for _ in range(iterations):
+        R = _quat_to_matrix(q)
+        num = np.zeros((3, F.shape[1]))
+        den = np.zeros(F.shape[1])
+        for j in range(3):
+            r = (R[j], R[3 + j], R[6 + j])
+            c = cols[j]
+            num[0] += r[1] * c[2] - r[2] * c[1]
+            num[1] += r[2] * c[0] - r[0] * c[2]
+            num[2] += r[0] * c[1] - r[1] * c[0]
+            den += r[0] * c[0] + r[1] * c[1] + r[2] * c[2]
+        omega = num / (np.abs(den) + 1e-9)
+        angle = np.sqrt((omega * omega).sum(axis=0))
+        small = angle < 1e-12
+        axis = omega / np.where(small, 1.0, angle)
+        half = 0.5 * np.where(small, 0.0, angle)
+        s = np.sin(half)
+        dq = np.stack([axis[0] * s, axis[1] * s, axis[2] * s, np.cos(half)])
+        # q <- dq * q (Hamilton product, x y z w)
+        x1, y1, z1, w1 = dq
+        x2, y2, z2, w2 = q
+        q = np.stack(
+            [
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            ]
+        )
+        q /= np.sqrt((q * q).sum(axis=0))
+    return _quat_to_matrix(q), q
+
+
+def _trace_rt_f(R: np.ndarray, F: np.ndarray) -> np.ndarray:
+    return (R * F).sum(axis=0)
+
+
+def pk1_corotational(F: np.ndarray, R: np.ndarray, mu, lam) -> np.ndarray:
+    """First Piola-Kirchhoff stress of corotational linear elasticity, (9, E) Pa.
+
+    ``P = 2 mu (F - R) + lambda tr(R^T F - I) R`` (Müller & Gross 2004; energy form of
+    McAdams et al. 2011). Reduces to linear elasticity for small deformations.
+    """
+    tr = _trace_rt_f(R, F) - 3.0
+    return 2.0 * mu * (F - R) + (lam * tr) * R
+
+
+def _cofactor(F: np.ndarray) -> np.ndarray:
+    f = F
+    return np.stack(
+        [
+            f[4] * f[8] - f[5] * f[7], f[5] * f[6] - f[3] * f[8], f[3] * f[7] - f[4] * f[6],
+            f[2] * f[7] - f[1] * f[8], f[0] * f[8] - f[2] * f[6], f[1] * f[6] - f[0] * f[7],
+            f[1] * f[5] - f[2] * f[4], f[2] * f[3] - f[0] * f[5], f[0] * f[4] - f[1] * f[3],
+        ]
+    )
+
+
+def pk1_stable_neo_hookean(F: np.ndarray, mu, lam) -> np.ndarray:
+    """First Piola-Kirchhoff stress of a stable neo-Hookean solid, (9, E) Pa.
+
+    Energy ``Psi = mu/2 (I_C - 3) + lam'/2 (J - alpha)^2`` with ``alpha = 1 + mu/lam'``
+    (Smith, de Goes & Kim 2018, "Stable Neo-Hookean Flesh Simulation", Eq. 14 without
+    the log barrier). ``lam' = lam + mu`` so that its small-strain limit is linear
+    elasticity with the given (mu, lam). Defined for inverted elements (J <= 0).
+    """
+    lam_s = lam + mu
+    alpha = 1.0 + mu / lam_s
+    cof = _cofactor(F)
+    J = F[0] * cof[0] + F[1] * cof[1] + F[2] * cof[2]
+    return mu * F + (lam_s * (J - alpha)) * cof
+
+
+def corotated_strain(F: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Small strain in the element's rotated frame, ``sym(R^T F) - I``, (9, E)."""
+    # (R^T F)_ik = sum_j R_ji F_jk
+    S = np.empty_like(F)
+    for i in range(3):
+        for k in range(3):
+            S[3 * i + k] = R[i] * F[k] + R[3 + i] * F[3 + k] + R[6 + i] * F[6 + k]
+    S = 0.5 * (S + S[[0, 3, 6, 1, 4, 7, 2, 5, 8]])
+    S[[0, 4, 8]] -= 1.0
+    return S
+
+
+def stress_linear(strain: np.ndarray, mu, lam) -> np.ndarray:
+    """Hooke's law ``2 mu eps + lam tr(eps) I`` for symmetric strains (9, E)."""
+    s = 2.0 * mu * strain
+    tr = strain[0] + strain[4] + strain[8]
+    s[[0, 4, 8]] += lam * tr
+    return s
+
+
+def rotate_stress(R: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """``R S`` for (9, E) fields: a corotated stress turned into a PK1 stress."""
+    out = np.empty_like(S)
+    for i in range(3):
+        for k in range(3):
+            out[3 * i + k] = R[3 * i] * S[k] + R[3 * i + 1] * S[3 + k] + R[3 * i + 2] * S[6 + k]
+    return out
+
+
+def check_material(youngs_modulus: float, poisson_ratio: float) -> None:
+    """Raise SimulationError for non-physical parameters (see :func:`lame_parameters`)."""
+    lame_parameters(youngs_modulus, poisson_ratio)

@@ -1,0 +1,295 @@
+"""Compiled per-step kernels (numba) of the FEM replay.
+
+These fuse, per element, what :mod:`core.simulation.fem` writes as vector
+operations (deformation gradient, Müller et al. 2016 rotation extraction, stresses,
+force scatter) and the per-triangle sphere test of :mod:`core.simulation.contact`.
+The numpy versions stay as the readable reference; tests check both agree.
+Per-element 3x3 fields are element-major (E, 9) here (contiguous per element);
+:mod:`core.simulation.fem` uses the transposed (9, E) layout.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["element_forces", "scatter_forces", "sphere_triangle_candidates", "sphere_contacts"]
+
+
+@njit(cache=True)
+def _quat_mat(qx, qy, qz, qw, R):
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz = qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    R[0] = 1 - 2 * (yy + zz)
+    R[1] = 2 * (xy - wz)
+    R[2] = 2 * (xz + wy)
+    R[3] = 2 * (xy + wz)
+    R[4] = 1 - 2 * (xx + zz)
+    R[5] = 2 * (yz - wx)
+    R[6] = 2 * (xz - wy)
+    R[7] = 2 * (yz + wx)
+    R[8] = 1 - 2 * (xx + yy)
+
+
+@njit(cache=True)
+def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out):
+    """Fused per-element pass: deformation gradient, rotation, PK1 stress, force scatter.
+
+    Args:
+        x: (N, 3) node positions, m.
+        tets, grad_n, volume: mesh constants (see :class:`core.simulation.fem.ElementData`).
+        mu, lam: (E,) Lamé parameters, Pa.
+        q: (4, E) rotation quaternions, warm start; updated in place when rotations are
+            computed (Newton iterations on the polar decomposition, see below).
+        iterations: rotation-extraction iterations (0: skip rotations).
+        law: 0 corotational linear (Müller & Gross 2004), 1 stable neo-Hookean
+            (Smith et al. 2018; see :mod:`core.simulation.fem` for the exact energy).
+        F_out, R_out: (E, 9) buffers receiving F and R (row-major 3x3 per element).
+
+    Returns:
+        (N, 3) internal nodal forces, N.
+    """
+    n_el = tets.shape[0]
+    f = np.zeros((x.shape[0], 3))
+    F = np.empty(9)
+    R = np.empty(9)
+    P = np.empty(9)
+    for e in range(n_el):
+        for i in range(3):
+            for k in range(3):
+                s = 0.0
+                for a in range(4):
+                    s += x[tets[e, a], i] * grad_n[e, a, k]
+                F[3 * i + k] = s
+        if iterations > 0:
+            qx, qy, qz, qw = q[0, e], q[1, e], q[2, e], q[3, e]
+            for _ in range(iterations):
+                _quat_mat(qx, qy, qz, qw, R)
+                # B = R^T F; find the small rotation theta (element frame) with
+                # axial(B - B^T) = (tr S I - S) theta, S = sym(B): a Newton step on
+                # the polar condition, quadratically convergent (Müller et al. 2016's
+                # update is its diagonal approximation, kept as the fallback).
+                b00 = R[0] * F[0] + R[3] * F[3] + R[6] * F[6]
+                b01 = R[0] * F[1] + R[3] * F[4] + R[6] * F[7]
+                b02 = R[0] * F[2] + R[3] * F[5] + R[6] * F[8]
+                b10 = R[1] * F[0] + R[4] * F[3] + R[7] * F[6]
+                b11 = R[1] * F[1] + R[4] * F[4] + R[7] * F[7]
+                b12 = R[1] * F[2] + R[4] * F[5] + R[7] * F[8]
+                b20 = R[2] * F[0] + R[5] * F[3] + R[8] * F[6]
+                b21 = R[2] * F[1] + R[5] * F[4] + R[8] * F[7]
+                b22 = R[2] * F[2] + R[5] * F[5] + R[8] * F[8]
+                v0 = b21 - b12
+                v1 = b02 - b20
+                v2 = b10 - b01
+                tr = b00 + b11 + b22
+                s01 = 0.5 * (b01 + b10)
+                s02 = 0.5 * (b02 + b20)
+                s12 = 0.5 * (b12 + b21)
+                m00 = tr - b00
+                m11 = tr - b11
+                m22 = tr - b22
+                c00 = m11 * m22 - s12 * s12
+                c01 = s02 * s12 + s01 * m22
+                c02 = s01 * s12 + s02 * m11
+                det = m00 * c00 - s01 * c01 - s02 * c02
+                if tr > 1e-6 and det > 1e-6 * tr * tr * tr:
+                    c11 = m00 * m22 - s02 * s02
+                    c12 = m00 * s12 + s01 * s02
+                    c22 = m00 * m11 - s01 * s01
+                    inv = 1.0 / det
+                    t0 = (c00 * v0 + c01 * v1 + c02 * v2) * inv
+                    t1 = (c01 * v0 + c11 * v1 + c12 * v2) * inv
+                    t2 = (c02 * v0 + c12 * v1 + c22 * v2) * inv
+                else:
+                    inv = 1.0 / (abs(tr) + 1e-9)
+                    t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
+                ang = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+                if ang > 1.0:  # damp huge steps (inverted elements)
+                    t0, t1, t2, ang = t0 / ang, t1 / ang, t2 / ang, 1.0
+                if ang < 1e-14:
+                    break
+                h = 0.5 * ang
+                sn = np.sin(h) / ang
+                x1, y1, z1, w1 = t0 * sn, t1 * sn, t2 * sn, np.cos(h)
+                # q <- q * dq (rotation applied in the element frame)
+                nx_ = qw * x1 + qx * w1 + qy * z1 - qz * y1
+                ny_ = qw * y1 - qx * z1 + qy * w1 + qz * x1
+                nz_ = qw * z1 + qx * y1 - qy * x1 + qz * w1
+                nw_ = qw * w1 - qx * x1 - qy * y1 - qz * z1
+                nrm = 1.0 / np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_ + nw_ * nw_)
+                qx, qy, qz, qw = nx_ * nrm, ny_ * nrm, nz_ * nrm, nw_ * nrm
+            q[0, e], q[1, e], q[2, e], q[3, e] = qx, qy, qz, qw
+            _quat_mat(qx, qy, qz, qw, R)
+        else:
+            for c in range(9):
+                R[c] = 0.0
+            R[0] = 1.0
+            R[4] = 1.0
+            R[8] = 1.0
+        if law == 0:
+            tr = -3.0
+            for c in range(9):
+                tr += R[c] * F[c]
+            for c in range(9):
+                P[c] = 2.0 * mu[e] * (F[c] - R[c]) + lam[e] * tr * R[c]
+        else:
+            f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
+            c0 = f4 * f8 - f5 * f7
+            c1 = f5 * f6 - f3 * f8
+            c2 = f3 * f7 - f4 * f6
+            c3 = f2 * f7 - f1 * f8
+            c4 = f0 * f8 - f2 * f6
+            c5 = f1 * f6 - f0 * f7
+            c6 = f1 * f5 - f2 * f4
+            c7 = f2 * f3 - f0 * f5
+            c8 = f0 * f4 - f1 * f3
+            J = f0 * c0 + f1 * c1 + f2 * c2
+            lam_s = lam[e] + mu[e]
+            g = lam_s * (J - (1.0 + mu[e] / lam_s))
+            P[0] = mu[e] * f0 + g * c0
+            P[1] = mu[e] * f1 + g * c1
+            P[2] = mu[e] * f2 + g * c2
+            P[3] = mu[e] * f3 + g * c3
+            P[4] = mu[e] * f4 + g * c4
+            P[5] = mu[e] * f5 + g * c5
+            P[6] = mu[e] * f6 + g * c6
+            P[7] = mu[e] * f7 + g * c7
+            P[8] = mu[e] * f8 + g * c8
+        for c in range(9):
+            F_out[e, c] = F[c]
+            R_out[e, c] = R[c]
+        V = volume[e]
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += P[3 * i + k] * grad_n[e, a, k]
+                f[node, i] -= V * s
+    return f
+
+
+@njit(cache=True)
+def scatter_forces(P, tets, grad_n, volume, n_nodes):
+    """Nodal forces ``f_a = -V P gradN_a`` from stresses P (E, 9), summed, (N, 3) N."""
+    f = np.zeros((n_nodes, 3))
+    for e in range(tets.shape[0]):
+        V = volume[e]
+        for a in range(4):
+            node = tets[e, a]
+            for i in range(3):
+                s = 0.0
+                for k in range(3):
+                    s += P[e, 3 * i + k] * grad_n[e, a, k]
+                f[node, i] -= V * s
+    return f
+
+
+@njit(cache=True)
+def sphere_triangle_candidates(x, triangles, centre, radius):
+    """Indices of triangles whose bounding sphere reaches the probe sphere (int64 array)."""
+    n = triangles.shape[0]
+    out = np.empty(n, dtype=np.int64)
+    m = 0
+    for t in range(n):
+        a, b, c = triangles[t, 0], triangles[t, 1], triangles[t, 2]
+        mx = (x[a, 0] + x[b, 0] + x[c, 0]) / 3.0
+        my = (x[a, 1] + x[b, 1] + x[c, 1]) / 3.0
+        mz = (x[a, 2] + x[b, 2] + x[c, 2]) / 3.0
+        reach = 0.0
+        for v in (a, b, c):
+            d = (x[v, 0] - mx) ** 2 + (x[v, 1] - my) ** 2 + (x[v, 2] - mz) ** 2
+            if d > reach:
+                reach = d
+        reach = np.sqrt(reach) + radius
+        d2 = (mx - centre[0]) ** 2 + (my - centre[1]) ** 2 + (mz - centre[2]) ** 2
+        if d2 < reach * reach:
+            out[m] = t
+            m += 1
+    return out[:m]
+
+
+@njit(cache=True)
+def _closest_on_triangle(p, a, b, c, w):
+    """Ericson 2004, Sec. 5.1.5; writes barycentric weights into w."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = ab @ ap
+    d2 = ac @ ap
+    if d1 <= 0.0 and d2 <= 0.0:
+        w[0], w[1], w[2] = 1.0, 0.0, 0.0
+        return
+    bp = p - b
+    d3 = ab @ bp
+    d4 = ac @ bp
+    if d3 >= 0.0 and d4 <= d3:
+        w[0], w[1], w[2] = 0.0, 1.0, 0.0
+        return
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        v = d1 / (d1 - d3)
+        w[0], w[1], w[2] = 1.0 - v, v, 0.0
+        return
+    cp = p - c
+    d5 = ab @ cp
+    d6 = ac @ cp
+    if d6 >= 0.0 and d5 <= d6:
+        w[0], w[1], w[2] = 0.0, 0.0, 1.0
+        return
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        v = d2 / (d2 - d6)
+        w[0], w[1], w[2] = 1.0 - v, 0.0, v
+        return
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        v = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        w[0], w[1], w[2] = 0.0, 1.0 - v, v
+        return
+    denom = 1.0 / (va + vb + vc)
+    v = vb * denom
+    ww = vc * denom
+    w[0], w[1], w[2] = 1.0 - v - ww, v, ww
+
+
+@njit(cache=True)
+def sphere_contacts(x, triangles, centre, radius):
+    """Penetrated triangles: (indices (k,), weights (k,3), normals (k,3), depth (k,), area (k,)).
+
+    Same geometry as :func:`core.simulation.contact.find_contacts` (the numpy reference).
+    """
+    cand = sphere_triangle_candidates(x, triangles, centre, radius)
+    k = cand.shape[0]
+    idx = np.empty(k, dtype=np.int64)
+    W = np.empty((k, 3))
+    N = np.empty((k, 3))
+    D = np.empty(k)
+    A = np.empty(k)
+    w = np.empty(3)
+    m = 0
+    for t in cand:
+        a = x[triangles[t, 0]]
+        b = x[triangles[t, 1]]
+        c = x[triangles[t, 2]]
+        _closest_on_triangle(centre, a, b, c, w)
+        q = w[0] * a + w[1] * b + w[2] * c
+        d = q - centre
+        dist = np.sqrt(d @ d)
+        if dist >= radius:
+            continue
+        fn = np.cross(b - a, c - a)
+        area2 = np.sqrt(fn @ fn)
+        fn = fn / area2
+        if (centre - q) @ fn < 0.0:  # centre behind the face plane: push inwards
+            N[m] = -fn
+            D[m] = radius + dist
+        else:
+            N[m] = d / max(dist, 1e-12)
+            D[m] = radius - dist
+        idx[m] = t
+        W[m] = w
+        A[m] = 0.5 * area2
+        m += 1
+    return idx[:m], W[:m], N[:m], D[:m], A[:m]

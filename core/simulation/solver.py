@@ -1,0 +1,428 @@
+"""Time stepping: implicit Euler with Rayleigh damping and penalty sphere contact.
+
+One step solves ``(M + dt C + dt^2 K0) dv = dt (f(x + dt v) - C v)`` for the velocity
+change, where ``f`` are the corotational (or neo-Hookean) internal forces evaluated
+exactly and ``K0`` is the constant rest stiffness, factorised once per model (a
+constant-Jacobian Newton step; Baraff & Witkin 1998 linearise the same way). With the
+paper's stiffness damping (beta = 0.1 s) ``dt*beta*K0`` dominates the matrix, so the
+constant Jacobian is an excellent approximation and one correction per step suffices.
+
+Contact constraints enter as low-rank terms ``sum_c w_c h_c h_c^T`` handled by the
+Sherman-Morrison-Woodbury identity on top of the constant factorisation, with cached
+columns of its inverse: contact never triggers a refactorisation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from core.errors import SimulationError
+from core.simulation import kernels
+from core.simulation.contact import Contacts, find_contacts
+from core.simulation.model import Model, State
+from core.simulation.probe import ProbePath
+
+__all__ = ["SimulationResult", "StepInfo", "step", "simulate", "static_equilibrium", "internal_forces"]
+
+ProgressCallback = Callable[[float, str], None]
+
+
+@dataclass(frozen=True)
+class StepInfo:
+    """What a step reports besides the new state.
+
+    Attributes:
+        contact_force: (3,) N, force the probe applies to the phantom, phantom frame.
+        n_contacts: number of active contact constraints.
+    """
+
+    contact_force: np.ndarray
+    n_contacts: int
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """Evidence of a replay.
+
+    Attributes:
+        times: (F,) output times, s.
+        positions: (F, N, 3) float64 node positions at ``times``, m, phantom frame
+            (NaN after a divergence).
+        contact_force: (F, 3) N, force applied by the probe on the phantom, phantom frame.
+        probe_centres: (F, 3) m, the (effect-transformed) probe centres used.
+        probe_radius: m, the radius used.
+        status: "ok" or "diverged".
+        message: why it diverged ("" when ok).
+        steps: number of time steps taken.
+        wall_time: s.
+    """
+
+    times: np.ndarray
+    positions: np.ndarray
+    contact_force: np.ndarray
+    probe_centres: np.ndarray
+    probe_radius: float
+    status: str
+    message: str
+    steps: int
+    wall_time: float
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+
+def internal_forces(model: Model, x: np.ndarray, state: State, dt: float):
+    """Internal + external (body, support) nodal forces at positions x.
+
+    Returns:
+        (f (N, 3) N, q (4, E) updated rotations, term_state tuple of updated internals).
+    """
+    el = model.elements
+    q = state.q.copy()
+    n_el = model.mesh.n_tets
+    F = np.empty((n_el, 9))
+    R = np.empty((n_el, 9))
+    iters = model.config.polar_iterations if model.needs_rotation else 0
+    law = 0 if model.material.law == "corotational" else 1
+    f = kernels.element_forces(x, model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, q, iters, law, F, R)
+    new_terms = []
+    for term, s in zip(model.terms, state.term_state):
+        Pt, s_new = term.stress(model, F.T, R.T, s, dt)
+        f += kernels.scatter_forces(np.ascontiguousarray(Pt.T), model.mesh.tets, el.grad_n, el.volume, x.shape[0])
+        new_terms.append(s_new)
+    if np.any(model.body_force):
+        f += model.body_force
+    if np.any(model.support_stiffness):
+        f -= model.support_stiffness[:, None] * (x - model.mesh.nodes)
+    return f, q, tuple(new_terms)
+
+
+def _free_index(model: Model) -> np.ndarray:
+    idx = np.full(3 * model.mesh.n_nodes, -1, dtype=np.int64)
+    idx[model.free_dofs] = np.arange(model.free_dofs.size)
+    return idx
+
+
+def _contact_rows(contacts: Contacts, directions: np.ndarray, free_index: np.ndarray):
+    """Rows h = direction (x) weights over the free dofs: ((k, 9) dof idx, (k, 9) coef)."""
+    dofs = (3 * contacts.nodes[:, :, None] + np.arange(3)[None, None, :]).reshape(-1, 9)
+    coef = (contacts.weights[:, :, None] * directions[:, None, :]).reshape(-1, 9)
+    return free_index[dofs], coef
+
+
+def _woodbury_solve(model: Model, rhs, dofs, coef, omega, beta):
+    """Solve ``(A + H diag(omega) H^T) d = rhs + H beta`` with A's cached factor."""
+    factor = model._factor
+    y = factor.solve(rhs)
+    if omega.size == 0:
+        return y
+    valid = dofs >= 0
+    if not np.any(valid):
+        return y
+    k = omega.size
+    uniq, inv = np.unique(dofs[valid], return_inverse=True)
+    rows_k = np.nonzero(valid)[0]
+    C = np.bincount(inv * k + rows_k, weights=coef[valid], minlength=uniq.size * k).reshape(uniq.size, k)
+    ZT = C.T @ factor.inverse_rows(uniq)  # (k, n) = (A^{-1} H)^T
+    y = y + beta @ ZT
+    S = np.diag(1.0 / omega) + ZT[:, uniq] @ C
+    return y - np.linalg.solve(S, C.T @ y[uniq]) @ ZT
+
+
+def _tangents(n: np.ndarray):
+    a = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0, 0]]), np.array([[0, 1.0, 0]]))
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    return t1, np.cross(n, t1)
+
+
+def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_velocity=None) -> tuple[State, StepInfo]:
+    """Advance one time step of ``model.config.dt`` with the probe at ``centre`` at the step's end.
+
+    Args:
+        model: the static model.
+        state: the current state (not modified).
+        centre: (3,) probe sphere centre at the end of the step, m, phantom frame.
+        radius: probe radius, m.
+        probe_velocity: (3,) m/s, used by friction (defaults to zero).
+
+    Returns:
+        (new state, :class:`StepInfo`).
+    """
+    cfg = model.config
+    dt = cfg.dt
+    centre = np.asarray(centre, dtype=np.float64)
+    vp = np.zeros(3) if probe_velocity is None else np.asarray(probe_velocity, dtype=np.float64)
+    tris = model.mesh.surface_triangles
+    if cfg.integrator == "symplectic_euler":
+        return _step_explicit(model, state, centre, radius, vp)
+
+    fi = model.__dict__.setdefault("_free_index_cache", None)
+    if fi is None:
+        fi = _free_index(model)
+        object.__setattr__(model, "_free_index_cache", fi)
+    m3 = np.repeat(model.node_mass, 3)
+    fd = model.free_dofs
+    v0 = state.v.ravel()
+    x0 = state.x.ravel()
+    vg = v0.copy()
+    contacts = None
+    q, terms = state.q, state.term_state
+    for it in range(cfg.newton_iterations):
+        xp = x0 + dt * vg
+        f, q, terms = internal_forces(model, xp.reshape(-1, 3), state, dt)
+        damp = cfg.rayleigh_mass * m3 * vg + cfg.rayleigh_stiffness * (model.K @ vg)
+        r = (dt * (f.ravel() - damp) - m3 * (vg - v0))[fd]
+        if it == 0:
+            contacts = find_contacts(xp.reshape(-1, 3), tris, centre, radius)
+        keep = np.ones(len(contacts), dtype=bool)
+        for _ in range(2):  # second pass drops constraints that would pull (adhesion)
+            c = _subset(contacts, keep)
+            dofs, coef, omega, beta = _constraint_terms(model, c, xp, vg, vp, fi, dt, centre, radius)
+            dv = _woodbury_solve(model, r, dofs, coef, omega, beta)
+            if len(c) == 0:
+                break
+            x_try = xp.copy()
+            x_try[fd] += dt * dv
+            phi = _gap(c, x_try.reshape(-1, 3), centre, radius)
+            pulling = phi < 0
+            if not np.any(pulling):
+                break
+            keep[np.flatnonzero(keep)[pulling]] = False
+        vg = vg.copy()
+        vg[fd] += dv
+        contacts = _subset(contacts, keep)
+    x_new = x0 + dt * vg
+    xn = x_new.reshape(-1, 3)
+    force = np.zeros(3)
+    if len(contacts):
+        phi = np.maximum(_gap(contacts, xn, centre, radius), 0.0)
+        fn = cfg.contact_stiffness * contacts.area * phi
+        force = (fn[:, None] * contacts.normals).sum(0)
+    new = State(x=xn, v=vg.reshape(-1, 3), q=q, term_state=terms, t=state.t + dt)
+    return new, StepInfo(contact_force=force, n_contacts=len(contacts))
+
+
+def _subset(c: Contacts, keep: np.ndarray) -> Contacts:
+    if np.all(keep):
+        return c
+    return Contacts(c.triangles[keep], c.nodes[keep], c.weights[keep], c.normals[keep], c.depth[keep], c.area[keep])
+
+
+def _gap(c: Contacts, x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Penetration along the frozen normal: ``r - n.(sum_j w_j x_j - centre)`` (> 0 inside)."""
+    p = np.einsum("kj,kjd->kd", c.weights, x[c.nodes])
+    return radius - np.einsum("kd,kd->k", c.normals, p - centre)
+
+
+def _constraint_terms(model: Model, c: Contacts, xp, vg, vp, fi, dt, centre, radius):
+    """Low-rank terms of the active contacts: penalty along the normal, and
+    regularised Coulomb friction along two tangents (Wriggers, "Computational
+    Contact Mechanics", Sec. 5.2: viscous regularisation of the stick branch)."""
+    cfg = model.config
+    if len(c) == 0:
+        z = np.zeros((0, 9))
+        return z.astype(np.int64), z, np.zeros(0), np.zeros(0)
+    k = cfg.contact_stiffness * c.area
+    phi = _gap(c, xp.reshape(-1, 3), centre, radius)
+    dofs, coef = _contact_rows(c, c.normals, fi)
+    omega = dt * dt * k
+    beta = dt * k * phi
+    if model.friction > 0:
+        fn = np.maximum(k * phi, 0.0)
+        t1, t2 = _tangents(c.normals)
+        v_pt = np.einsum("kj,kjd->kd", c.weights, vg.reshape(-1, 3)[c.nodes])
+        rel = v_pt - vp[None, :]
+        rel_t = rel - np.einsum("kd,kd->k", rel, c.normals)[:, None] * c.normals
+        speed = np.maximum(np.linalg.norm(rel_t, axis=1), cfg.friction_slip_speed)
+        ct = model.friction * fn / speed
+        d1, c1 = _contact_rows(c, t1, fi)
+        d2, c2 = _contact_rows(c, t2, fi)
+        w_t = dt * ct
+        b1 = dt * ct * (t1 @ vp - np.einsum("kd,kd->k", t1, v_pt))
+        b2 = dt * ct * (t2 @ vp - np.einsum("kd,kd->k", t2, v_pt))
+        keep = w_t > 0
+        dofs = np.concatenate([dofs, d1[keep], d2[keep]])
+        coef = np.concatenate([coef, c1[keep], c2[keep]])
+        omega = np.concatenate([omega, w_t[keep], w_t[keep]])
+        beta = np.concatenate([beta, b1[keep], b2[keep]])
+    return dofs, coef, omega, beta
+
+
+def _step_explicit(model: Model, state: State, centre, radius, vp):
+    """Symplectic (semi-implicit) Euler: conditionally stable, kept for comparison."""
+    cfg = model.config
+    dt = cfg.dt
+    f, q, terms = internal_forces(model, state.x, state, dt)
+    v = state.v.ravel()
+    m3 = np.repeat(model.node_mass, 3)
+    damp = cfg.rayleigh_mass * m3 * v + cfg.rayleigh_stiffness * (model.K @ v)
+    contacts = find_contacts(state.x, model.mesh.surface_triangles, centre, radius)
+    fc = np.zeros_like(state.x)
+    force = np.zeros(3)
+    if len(contacts):
+        fn = cfg.contact_stiffness * contacts.area * np.maximum(contacts.depth, 0.0)
+        for j in range(3):
+            np.add.at(fc, contacts.nodes[:, j], (fn * contacts.weights[:, j])[:, None] * contacts.normals)
+        force = (fn[:, None] * contacts.normals).sum(0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        acc = (f.ravel() + fc.ravel() - damp) / m3
+        v_new = np.zeros_like(v)
+        v_new[model.free_dofs] = v[model.free_dofs] + dt * acc[model.free_dofs]
+        x_new = state.x + dt * v_new.reshape(-1, 3)
+    return State(x_new, v_new.reshape(-1, 3), q, terms, state.t + dt), StepInfo(force, len(contacts))
+
+
+def static_equilibrium(
+    model: Model,
+    *,
+    prescribed: dict[int, np.ndarray] | None = None,
+    tol: float = 1e-10,
+    max_iterations: int = 200,
+) -> tuple[State, np.ndarray]:
+    """Quasi-static equilibrium under the model's body forces and supports, with
+    optional prescribed node positions (Dirichlet conditions), by Newton iterations
+    with the constant rest stiffness (no probe).
+
+    Args:
+        model: the model (its fixed nodes stay at rest).
+        prescribed: {node index: (3,) position in m} for additional Dirichlet nodes.
+        tol: stop when the largest out-of-balance force is below ``tol`` times the
+            largest force scale (N).
+
+    Returns:
+        (state, reactions): the equilibrium state and (N, 3) reaction forces in N
+        (force the supports exert on each constrained node; zero on free nodes).
+
+    Raises:
+        SimulationError: if Newton does not converge.
+    """
+    state = model.initial_state()
+    x = state.x.copy()
+    constrained = ~model.free.copy()
+    if prescribed:
+        for node, pos in prescribed.items():
+            x[node] = np.asarray(pos, dtype=np.float64)
+            constrained[node] = True
+    dofs = (3 * np.flatnonzero(~constrained)[:, None] + np.arange(3)).ravel()
+    Ks = (model.K + sp.diags(np.repeat(model.support_stiffness, 3))).tocsc()[dofs][:, dofs]
+    lu = spla.splu(Ks.tocsc())
+    scale = None
+    for _ in range(max_iterations):
+        f, q, terms = internal_forces(model, x, state, 1.0)
+        state = State(x, state.v, q, terms, 0.0)
+        r = f.ravel()[dofs]
+        if scale is None:
+            scale = max(np.abs(f).max(), np.abs(model.body_force).max(), 1e-12)
+        if np.abs(r).max() <= tol * scale:
+            break
+        xf = x.ravel().copy()
+        xf[dofs] += lu.solve(r)
+        x = xf.reshape(-1, 3)
+    else:
+        raise SimulationError("static equilibrium did not converge")
+    f, q, terms = internal_forces(model, x, state, 1.0)
+    reactions = np.where(constrained[:, None], -f, 0.0)
+    return State(x, np.zeros_like(x), q, terms, 0.0), reactions
+
+
+def simulate(
+    model: Model,
+    path: ProbePath,
+    probe_radius: float,
+    output_times,
+    *,
+    state: State | None = None,
+    callback: ProgressCallback | None = None,
+) -> SimulationResult:
+    """Replay a probe path and record node positions at the output (camera) times.
+
+    The model's input-side effects (probe radius, clock offset, kinematic offset)
+    are applied to the path first. The run starts from rest (or from the sagged
+    equilibrium when the model has body forces) at ``min(path.t[0], output_times[0])``
+    and steps with ``model.config.dt``; positions at output times are interpolated
+    linearly between the bracketing steps.
+
+    Args:
+        model: the static model.
+        path: probe sphere centres over time, phantom frame.
+        probe_radius: m (session.json's value; a ProbeRadius effect overrides it).
+        output_times: (F,) increasing times, s.
+        state: optional start state (e.g. from a previous run).
+        callback: ``callback(fraction, message)`` for progress.
+
+    Returns:
+        A :class:`SimulationResult`. Divergence is reported in ``status``, not raised.
+
+    Raises:
+        SimulationError: on invalid inputs (empty or decreasing output times).
+    """
+    import time
+
+    t_wall = time.perf_counter()
+    for effect in model.effects:
+        path, probe_radius = effect.transform_probe(path, probe_radius)
+    times = np.asarray(output_times, dtype=np.float64).reshape(-1)
+    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+        raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
+    if not (probe_radius > 0):
+        raise SimulationError(f"probe radius must be positive, got {probe_radius}")
+    dt = model.config.dt
+    t0 = float(min(path.t[0], times[0]))
+    n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
+    step_t = t0 + dt * np.arange(n_steps + 1)
+    centres = path.at(step_t)
+    if state is None:
+        state = static_equilibrium(model)[0] if np.any(model.body_force) else model.initial_state()
+    state = state.copy()
+    state.t = t0
+    n_nodes = model.mesh.n_nodes
+    out_x = np.full((times.size, n_nodes, 3), np.nan)
+    out_f = np.full((times.size, 3), np.nan)
+    # output j lies in (step_t[k-1], step_t[k]]
+    k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
+    limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
+    status, message = "ok", ""
+    prev_x, prev_f = state.x, np.zeros(3)
+    j = 0
+    while j < times.size and k_of[j] == 0:
+        out_x[j], out_f[j] = state.x, 0.0
+        j += 1
+    report_every = max(n_steps // 50, 1)
+    for k in range(1, n_steps + 1):
+        vp = (centres[k] - centres[k - 1]) / dt
+        state, info = step(model, state, centres[k], probe_radius, vp)
+        disp = np.abs(state.x - model.mesh.nodes).max()
+        if not np.isfinite(disp) or disp > limit:
+            status = "diverged"
+            message = (
+                f"diverged at t = {step_t[k]:.3f} s (step {k}): "
+                + ("non-finite positions" if not np.isfinite(disp) else f"node moved {disp * 1e3:.0f} mm")
+            )
+            break
+        while j < times.size and k_of[j] == k:
+            a = (times[j] - step_t[k - 1]) / dt
+            out_x[j] = (1 - a) * prev_x + a * state.x
+            out_f[j] = (1 - a) * prev_f + a * info.contact_force
+            j += 1
+        prev_x, prev_f = state.x, info.contact_force
+        if callback is not None and (k % report_every == 0 or k == n_steps):
+            callback(k / n_steps, f"step {k}/{n_steps}")
+    return SimulationResult(
+        times=times,
+        positions=out_x,
+        contact_force=out_f,
+        probe_centres=path.at(times),
+        probe_radius=float(probe_radius),
+        status=status,
+        message=message,
+        steps=k if n_steps else 0,
+        wall_time=time.perf_counter() - t_wall,
+    )
