@@ -1,0 +1,545 @@
+"""Camera calibration: ``T_phantom_camera`` by ICP of the reference cloud onto the phantom.
+
+Wu et al. 2020, Sec. 3.3: "we extract the point cloud of the phantom without any robot
+interaction [and] find the transformation between the phantom and that point cloud using
+iterative closest point (ICP) [Besl & McKay 1992] ... Since the top of the block is flat
+and featureless, we manually initialize the registration". Here:
+
+* ICP is point-to-plane (Chen & Medioni 1992) from ``open3d.pipelines.registration``,
+  coarse to fine (10, 5, 3 mm correspondence distance), source = the cleaned reference
+  cloud (camera frame), target = dense samples of the phantom's rest surface with their
+  normals (:func:`phantom_rest_surface`, phantom frame).
+* Manual initialisation (``picked``): a few camera points and the phantom points they
+  show, aligned by :func:`core.registration.rigid.kabsch`.
+* Automatic initialisation: the table is found by RANSAC (:func:`find_table_plane`), the
+  phantom is the largest DBSCAN cluster (Ester et al. 1996) standing on it; the phantom's
+  z-axis is the table normal (facing the camera), its x/y axes and centre come from the
+  minimum-area rectangle around the cluster's footprint on the table (rotating calipers,
+  Toussaint 1983), and its origin from the box size. The four yaw candidates (0, 90, 180,
+  270 deg about the vertical axis) are each refined by ICP; for a box, two of them (180
+  deg apart) fit the geometry equally well -- a box is symmetric under that rotation, so
+  no cloud of the box alone can tell them apart. They are disambiguated with ``hints``:
+  raw camera frames with the instrument in view, whose phantom-frame pose is known from
+  the robot's kinematics and ``T_phantom_robot``. Under the right candidate the raw
+  points that lie outside the phantom fall on the instrument's sphere and shaft; under
+  the wrong one they do not (:func:`instrument_support`; the winner needs >= 10 points
+  and twice the runner-up's). If the hints do not decide, a :class:`RegistrationError`
+  asks for picked points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable, Sequence
+
+import numpy as np
+
+from core.errors import CleaningError, RegistrationError
+from core.registration.cleaning import _as_points, _as_size, _o3d_cloud, find_table_plane, instrument_mask
+from core.registration.rigid import apply_transform, kabsch
+
+__all__ = [
+    "CameraFit",
+    "calibrate_camera",
+    "phantom_rest_surface",
+    "probe_pose_phantom",
+    "instrument_hints",
+    "instrument_support",
+]
+
+#: Correspondence distances of the coarse-to-fine ICP stages, m; the last one also
+#: defines ``fitness`` (about 3 sigma of the SR300's depth noise).
+_ICP_STAGES = (0.010, 0.005, 0.003)
+
+Hint = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+@dataclass(frozen=True)
+class CameraFit:
+    """Result of :func:`calibrate_camera`.
+
+    Attributes:
+        T: (4, 4) float64 ``T_phantom_camera`` (camera-frame points -> phantom frame).
+        fitness: fraction of the cleaned reference points within the final ICP
+            correspondence distance (3 mm) of the phantom's rest surface, in [0, 1].
+        rms: point-to-plane rms residual of those inlier points, m.
+        T_init: (4, 4) float64 the initial ``T_phantom_camera`` ICP started from.
+        residuals: (N,) float64 point-to-plane distance of every cleaned reference point
+            used (inliers and not) to its nearest rest-surface sample, m.
+        method: ``"auto"`` or ``"picked"``.
+        coverage: fraction of the rest surface's upward-facing samples (the top face)
+            with a reference point within 3 mm -- the other direction of fitness: a
+            model larger than the phantom fits the points well but is not covered.
+    """
+
+    T: np.ndarray
+    fitness: float
+    rms: float
+    T_init: np.ndarray
+    residuals: np.ndarray
+    method: str
+    coverage: float = 1.0
+
+
+# --------------------------------------------------------------------------- surface
+
+
+def phantom_rest_surface(
+    phantom_size, stl_path: str | Path | None = None, *, spacing: float = 0.001
+) -> tuple[np.ndarray, np.ndarray]:
+    """Dense samples of the phantom's rest surface, phantom frame.
+
+    The bottom face (z = 0) is excluded: it stands on the table and is never visible.
+
+    Args:
+        phantom_size: (3,) box size (sx, sy, sz), m; the box spans [0, sx] x [0, sy] x [0, sz].
+        stl_path: optional ``phantom.stl`` (rest surface, phantom frame, m); when given it
+            replaces the box and is sampled uniformly at random (seeded) with about one
+            point per ``spacing**2`` of area; faces facing down at z ~ 0 are skipped.
+        spacing: sample spacing, m.
+
+    Returns:
+        points (P, 3) float64 m and unit outward normals (P, 3) float64, phantom frame.
+
+    Raises:
+        ValueError: bad size or spacing; an STL that cannot be read or has no faces.
+    """
+    if not spacing > 0:
+        raise ValueError(f"spacing must be > 0 m, got {spacing}")
+    if stl_path is not None:
+        return _stl_surface(Path(stl_path), spacing)
+    sx, sy, sz = _as_size(phantom_size)
+
+    def grid(a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
+        u = np.linspace(0.0, a, max(2, int(np.ceil(a / spacing)) + 1))
+        v = np.linspace(0.0, b, max(2, int(np.ceil(b / spacing)) + 1))
+        uu, vv = np.meshgrid(u, v, indexing="ij")
+        return uu.ravel(), vv.ravel()
+
+    pts, nrm = [], []
+    x, y = grid(sx, sy)  # top
+    pts.append(np.c_[x, y, np.full_like(x, sz)])
+    nrm.append(np.tile([0.0, 0.0, 1.0], (x.size, 1)))
+    y, z = grid(sy, sz)  # x = 0 and x = sx
+    for xv, nx in ((0.0, -1.0), (sx, 1.0)):
+        pts.append(np.c_[np.full_like(y, xv), y, z])
+        nrm.append(np.tile([nx, 0.0, 0.0], (y.size, 1)))
+    x, z = grid(sx, sz)  # y = 0 and y = sy
+    for yv, ny in ((0.0, -1.0), (sy, 1.0)):
+        pts.append(np.c_[x, np.full_like(x, yv), z])
+        nrm.append(np.tile([0.0, ny, 0.0], (x.size, 1)))
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def _stl_surface(path: Path, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    import trimesh
+
+    try:
+        mesh = trimesh.load(path, force="mesh")
+    except Exception as exc:  # trimesh raises many types
+        raise ValueError(f"{path}: cannot read the phantom STL: {exc}") from exc
+    if len(mesh.faces) == 0:
+        raise ValueError(f"{path}: the phantom STL has no faces")
+    zmin = float(mesh.bounds[0, 2])
+    centroid_z = mesh.triangles_center[:, 2]
+    bottom = (mesh.face_normals[:, 2] < -0.99) & (centroid_z < zmin + 1e-4)
+    keep = ~bottom
+    sub = mesh.submesh([np.flatnonzero(keep)], append=True)
+    count = max(1000, int(np.ceil(sub.area / spacing**2)))
+    pts, face = trimesh.sample.sample_surface(sub, count, seed=0)
+    return np.asarray(pts, dtype=np.float64), np.asarray(sub.face_normals[face], dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- kinematics
+
+
+def probe_pose_phantom(kinematics, t: np.ndarray, T_phantom_robot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Probe sphere centres and tool z-axes at times ``t``, phantom frame.
+
+    Positions are linearly interpolated, orientations spherically (Slerp); times outside
+    the kinematics' range are clamped to its ends.
+
+    Args:
+        kinematics: object with ``t`` (K,) s, ``position`` (K, 3) robot frame m and
+            ``quaternion`` (K, 4) xyzw (``core.io`` ``Kinematics``).
+        t: (M,) query times, s, same clock.
+        T_phantom_robot: (4, 4) robot calibration (:func:`calibrate_robot`).
+
+    Returns:
+        centres (M, 3) float64 m and unit tool z-axes (M, 3) float64 (shaft -> tip),
+        phantom frame.
+    """
+    from scipy.spatial.transform import Rotation, Slerp
+
+    kt = np.asarray(kinematics.t, dtype=np.float64).reshape(-1)
+    pos = np.asarray(kinematics.position, dtype=np.float64).reshape(-1, 3)
+    quat = np.asarray(kinematics.quaternion, dtype=np.float64).reshape(-1, 4)
+    tq = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), kt[0], kt[-1])
+    centre_robot = np.stack([np.interp(tq, kt, pos[:, k]) for k in range(3)], axis=1)
+    if kt.size >= 2:
+        rot = Slerp(kt, Rotation.from_quat(quat))(tq)
+    else:
+        rot = Rotation.from_quat(np.repeat(quat[:1], tq.size, axis=0))
+    z_robot = rot.as_matrix()[:, :, 2]
+    T = np.asarray(T_phantom_robot, dtype=np.float64)
+    return apply_transform(T, centre_robot), z_robot @ T[:3, :3].T
+
+
+def instrument_hints(sequence, T_phantom_robot: np.ndarray, frames: Iterable[int] = (0, 1, 2)) -> list[Hint]:
+    """Build ``hints`` for :func:`calibrate_camera` from raw frames of one sequence.
+
+    Args:
+        sequence: object with ``kinematics`` (see :func:`probe_pose_phantom`), ``frames.t``
+            (M,) s and ``cloud(i)`` -> (N, 3) camera-frame points (``core.io`` ``Sequence``).
+        T_phantom_robot: (4, 4) robot calibration.
+        frames: frame indices to use. The instrument must be in view; frames where the
+            probe is low (touching the phantom) discriminate best: high above the
+            phantom's centre, the shaft of the symmetric twin can cross the real one.
+
+    Returns:
+        list of ``(points_camera (N, 3), probe_centre_phantom (3,), shaft_axis_phantom (3,))``.
+    """
+    idx = [int(i) for i in frames]
+    t = np.asarray(sequence.frames.t, dtype=np.float64)[idx]
+    centres, axes = probe_pose_phantom(sequence.kinematics, t, T_phantom_robot)
+    return [(np.asarray(sequence.cloud(i), dtype=np.float64), centres[k], axes[k]) for k, i in enumerate(idx)]
+
+
+def instrument_support(
+    T_phantom_camera: np.ndarray,
+    hints: Sequence[Hint],
+    phantom_size,
+    *,
+    probe_radius: float = 0.005,
+    shaft_radius: float = 0.0045,
+    tolerance: float = 0.003,
+) -> int:
+    """How many raw hint points a candidate calibration puts on the instrument.
+
+    Counts the points that, mapped by ``T_phantom_camera``, lie inside the instrument
+    (sphere + shaft grown by ``tolerance``) but outside the rest box grown by
+    ``tolerance`` and above the table (z > 5 mm) -- points the phantom or the table
+    cannot explain. Under a wrong candidate the instrument's points land elsewhere.
+    """
+    size = _as_size(phantom_size)
+    T = np.asarray(T_phantom_camera, dtype=np.float64)
+    total = 0
+    for points_camera, centre, axis in hints:
+        pts = _as_points("hint points_camera", points_camera)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        q = apply_transform(T, pts)
+        g = tolerance
+        in_box = ((q[:, 0] > -g) & (q[:, 0] < size[0] + g) & (q[:, 1] > -g) & (q[:, 1] < size[1] + g)
+                  & (q[:, 2] < size[2] + g))
+        free = ~in_box & (q[:, 2] > 0.005)
+        on_tool = instrument_mask(q[free], centre, axis, probe_radius=probe_radius,
+                                  shaft_radius=shaft_radius, margin=tolerance)
+        total += int(np.count_nonzero(on_tool))
+    return total
+
+
+# --------------------------------------------------------------------------- ICP helpers
+
+
+def _phantom_cluster(points_camera: np.ndarray, size: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Phantom points (M, 3) of a camera-frame reference cloud and the table plane (4,), camera frame.
+
+    Table by RANSAC (:func:`find_table_plane`), phantom = largest DBSCAN cluster standing on it.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = points_camera[np.all(np.isfinite(points_camera), axis=1)]
+    if pts.shape[0] > 30000:
+        pts = np.asarray(_o3d_cloud(pts).voxel_down_sample(0.001).points)
+    table = find_table_plane(pts, phantom_height=float(size[2]), seed=seed)
+    n, d = table.plane[:3], table.plane[3]
+    h = pts @ n + d
+    cand = pts[(h > 0.003) & (h < size[2] + 0.01)]
+    if cand.shape[0] < 20:
+        raise CleaningError(f"only {cand.shape[0]} points stand on the table; expected the phantom")
+    nn = cKDTree(cand).query(cand, k=2)[0][:, 1]
+    eps = float(np.clip(3.0 * np.median(nn), 0.003, 0.01))
+    labels = np.asarray(_o3d_cloud(cand).cluster_dbscan(eps=eps, min_points=5), dtype=np.int64)
+    if labels.max(initial=-1) < 0:
+        raise CleaningError("no cluster of points stands on the table; expected the phantom")
+    largest = np.bincount(labels[labels >= 0]).argmax()
+    return cand[labels == largest], table.plane
+
+
+def _min_area_rectangle(p2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Minimum-area rectangle of 2-D points (rotating calipers over the convex hull edges).
+
+    Returns centre (2,), unit long axis (2,), extents (2,) (long, short).
+    """
+    from scipy.spatial import ConvexHull
+
+    hull = p2[ConvexHull(p2).vertices]
+    edges = np.roll(hull, -1, axis=0) - hull
+    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2))
+    best = None
+    for a in angles:
+        u = np.array([np.cos(a), np.sin(a)])
+        v = np.array([-u[1], u[0]])
+        pu, pv = hull @ u, hull @ v
+        area = np.ptp(pu) * np.ptp(pv)
+        if best is None or area < best[0]:
+            centre = u * (pu.max() + pu.min()) / 2 + v * (pv.max() + pv.min()) / 2
+            ext = np.array([np.ptp(pu), np.ptp(pv)])
+            best = (area, centre, u, v, ext)
+    _, centre, u, v, ext = best
+    if ext[1] > ext[0]:
+        u, ext = v, ext[::-1]
+    return centre, u, ext
+
+
+def _auto_inits(cluster: np.ndarray, plane: np.ndarray, size: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Four ``T_phantom_camera`` candidates (yaw 0/90/180/270 deg) from table + footprint.
+
+    Also returns the footprint rectangle's extents (2,) (long, short), m.
+    """
+    z = plane[:3] / np.linalg.norm(plane[:3])  # up, toward the camera
+    e1 = np.cross(z, [1.0, 0.0, 0.0])
+    if np.linalg.norm(e1) < 0.1:
+        e1 = np.cross(z, [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(z, e1)
+    h = cluster @ z + plane[3]
+    base = cluster - np.outer(h, z)  # projected onto the table
+    p2 = np.c_[base @ e1, base @ e2]
+    c2, u2, extents = _min_area_rectangle(p2)
+    origin_on_table = -plane[3] * z  # the point of the plane closest to the camera origin
+    centre = origin_on_table + c2[0] * e1 + c2[1] * e2 - ((origin_on_table @ e1) * e1 + (origin_on_table @ e2) * e2)
+    long_axis = u2[0] * e1 + u2[1] * e2
+    inits = []
+    for k in range(4):
+        a = k * np.pi / 2
+        x = np.cos(a) * long_axis + np.sin(a) * np.cross(z, long_axis)
+        y = np.cross(z, x)
+        R_cam_ph = np.c_[x, y, z]
+        o = centre - R_cam_ph @ np.array([size[0] / 2, size[1] / 2, 0.0])
+        T_cam_ph = np.eye(4)
+        T_cam_ph[:3, :3], T_cam_ph[:3, 3] = R_cam_ph, o
+        inits.append(np.linalg.inv(T_cam_ph))
+    return inits, extents
+
+
+def _check_footprint(extents: np.ndarray, size: np.ndarray, tolerance: float = 0.2) -> None:
+    """Raise when the phantom's footprint on the table differs from ``size`` by > ``tolerance``."""
+    expected = np.sort(size[:2])[::-1]
+    if np.any(np.abs(extents - expected) > tolerance * expected):
+        raise RegistrationError(
+            f"the phantom in the reference cloud measures {extents[0] * 1e3:.1f} x {extents[1] * 1e3:.1f} mm "
+            f"on the table, expected {expected[0] * 1e3:.1f} x {expected[1] * 1e3:.1f} mm (phantom_size); "
+            "wrong phantom_size, or the phantom is not fully in view")
+
+
+class _Target:
+    """The rest surface as an open3d cloud with normals plus a KD-tree for evaluation."""
+
+    def __init__(self, points: np.ndarray, normals: np.ndarray):
+        import open3d as o3d
+        from scipy.spatial import cKDTree
+
+        self.points, self.normals = points, normals
+        self.pcd = _o3d_cloud(points)
+        self.pcd.normals = o3d.utility.Vector3dVector(normals)
+        self.tree = cKDTree(points)
+        self.top = points[normals[:, 2] > 0.9]
+
+    def coverage(self, T: np.ndarray, source: np.ndarray, threshold: float) -> float:
+        """Fraction of upward-facing model samples with a transformed source point within ``threshold``."""
+        from scipy.spatial import cKDTree
+
+        if self.top.shape[0] == 0:
+            return 1.0
+        dist, _ = cKDTree(apply_transform(T, source)).query(self.top, distance_upper_bound=threshold)
+        return float(np.mean(np.isfinite(dist)))
+
+    def evaluate(self, T: np.ndarray, source: np.ndarray, threshold: float) -> tuple[float, float, np.ndarray]:
+        """fitness, point-to-plane inlier rms (m), point-to-plane residual of every point (m)."""
+        q = apply_transform(T, source)
+        dist, j = self.tree.query(q)
+        res = np.abs(np.einsum("ij,ij->i", q - self.points[j], self.normals[j]))
+        inl = dist < threshold
+        fitness = float(np.mean(inl)) if q.shape[0] else 0.0
+        rms = float(np.sqrt(np.mean(res[inl] ** 2))) if np.any(inl) else float("inf")
+        return fitness, rms, res
+
+
+def _icp(source_pcd, target: _Target, T_init: np.ndarray) -> np.ndarray:
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    est = reg.TransformationEstimationPointToPlane()
+    T = np.asarray(T_init, dtype=np.float64)
+    for dist in _ICP_STAGES:
+        res = reg.registration_icp(source_pcd, target.pcd, dist, T, est,
+                                   reg.ICPConvergenceCriteria(max_iteration=40))
+        T = np.asarray(res.transformation, dtype=np.float64)
+    return T
+
+
+def _same_pose(A: np.ndarray, B: np.ndarray, deg: float = 5.0, metres: float = 0.005) -> bool:
+    dR = A[:3, :3] @ B[:3, :3].T
+    angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
+    return angle < deg and np.linalg.norm(A[:3, 3] - B[:3, 3]) < metres
+
+
+# --------------------------------------------------------------------------- public
+
+
+def calibrate_camera(
+    reference_camera: np.ndarray,
+    phantom_size,
+    *,
+    probe_radius: float | None = None,
+    picked: tuple[np.ndarray, np.ndarray] | None = None,
+    hints: Sequence[Hint] | None = None,
+    stl_path: str | Path | None = None,
+    min_fitness: float = 0.6,
+    max_rms: float = 0.002,
+    min_coverage: float = 0.7,
+    shaft_radius: float = 0.0045,
+    seed: int = 0,
+    callback: Callable[[str, dict], None] | None = None,
+) -> CameraFit:
+    """Estimate ``T_phantom_camera`` by point-to-plane ICP of the reference cloud.
+
+    See the module docstring for the method (Wu et al. 2020, Sec. 3.3; Besl & McKay 1992;
+    Chen & Medioni 1992).
+
+    Args:
+        reference_camera: (N, 3) float camera-frame cloud of the phantom at rest, without
+            the instrument (``calibration/reference.ply``), m; raw (table, outliers).
+        phantom_size: (3,) box size, m.
+        probe_radius: probe sphere radius for scoring ``hints``, m (default 5 mm).
+        picked: optional ``(points_camera (K, 3), points_phantom (K, 3))``, K >= 3, pairs
+            picked by a user; the initial transform is their Kabsch fit and the
+            symmetry is not resolved further (the user did).
+        hints: for automatic initialisation, a list of ``(points_camera (N, 3) of a raw
+            sequence frame, probe_centre_phantom (3,), shaft_axis_phantom (3,))`` -- see
+            :func:`instrument_hints`. Needed whenever the phantom's shape is symmetric
+            (a box always is).
+        stl_path: optional ``phantom.stl`` rest surface replacing the box.
+        min_fitness: least accepted fitness (fraction of reference points within 3 mm).
+        max_rms: largest accepted point-to-plane inlier rms, m.
+        min_coverage: least accepted :attr:`CameraFit.coverage` (the top face must be
+            seen; catches a phantom smaller than ``phantom_size``).
+        shaft_radius: instrument shaft radius for scoring ``hints``, m.
+        seed: RANSAC seed.
+        callback: optional ``callback(stage, info)`` for progress (stages ``"segmented"``,
+            ``"candidate"``, ``"done"``).
+
+    Returns:
+        :class:`CameraFit`.
+
+    Raises:
+        ValueError: malformed arguments.
+        RegistrationError: no table / phantom found in the reference cloud; picked points
+            inconsistent; the fit has fitness < ``min_fitness``, rms > ``max_rms`` or
+            coverage < ``min_coverage``; the footprint of the phantom in the reference
+            cloud differs from ``phantom_size`` by more than 20 % (auto); or
+            the automatic initialisation cannot resolve the phantom's symmetry (give
+            ``hints`` with the instrument in view, or ``picked`` points).
+    """
+    ref = _as_points("reference_camera", reference_camera)
+    size = _as_size(phantom_size)
+    r_probe = 0.005 if probe_radius is None else float(probe_radius)
+    notify = callback or (lambda stage, info: None)
+    target = _Target(*phantom_rest_surface(size, stl_path))
+    final = _ICP_STAGES[-1]
+    shift = np.eye(4)
+    if stl_path is not None:  # the STL replaces the box: initialise and check with its bounds
+        lo, hi = target.points.min(axis=0), target.points.max(axis=0)
+        size, shift[:3, 3] = hi - lo, lo
+
+    if picked is not None:
+        pc, pp = picked
+        pc, pp = _as_points("picked points_camera", pc), _as_points("picked points_phantom", pp)
+        if pc.shape != pp.shape or pc.shape[0] < 3:
+            raise ValueError(f"picked needs K >= 3 pairs of (K, 3) points, got {pc.shape} and {pp.shape}")
+        try:
+            init = kabsch(pc, pp)
+        except ValueError as exc:
+            raise RegistrationError(f"picked points are degenerate: {exc}") from exc
+        if init.rms > 0.01:
+            raise RegistrationError(
+                f"picked points do not match rigidly: rms {init.rms * 1e3:.1f} mm (> 10 mm); "
+                f"worst pair {int(np.argmax(init.residuals))}", rms=init.rms)
+        T_init = init.T
+        try:
+            source, plane = _phantom_cluster(ref, size, seed)
+            _check_footprint(_auto_inits(source, plane, size)[1], size)
+        except CleaningError:  # no table in view: crop around the picked pose instead
+            q = apply_transform(T_init, ref[np.all(np.isfinite(ref), axis=1)])
+            g = 0.01
+            keep = ((q[:, 0] > -g) & (q[:, 0] < size[0] + g) & (q[:, 1] > -g) & (q[:, 1] < size[1] + g)
+                    & (q[:, 2] > 0.003) & (q[:, 2] < size[2] + g))
+            source = ref[np.all(np.isfinite(ref), axis=1)][keep]
+        if source.shape[0] < 20:
+            raise RegistrationError(f"only {source.shape[0]} reference points near the picked pose")
+        notify("segmented", {"points": int(source.shape[0])})
+        T = _icp(_o3d_cloud(source), target, T_init)
+        fitness, rms, res = target.evaluate(T, source, final)
+        coverage = target.coverage(T, source, final)
+        method = "picked"
+    else:
+        try:
+            source, plane = _phantom_cluster(ref, size, seed)
+        except CleaningError as exc:
+            raise RegistrationError(f"automatic initialisation failed: {exc}; pick points instead") from exc
+        notify("segmented", {"points": int(source.shape[0])})
+        inits, extents = _auto_inits(source, plane, size)
+        _check_footprint(extents, size)
+        inits = [shift @ T0 for T0 in inits]
+        src_pcd = _o3d_cloud(source)
+        results = []  # (T_init, T, fitness, rms, residuals, coverage)
+        for T0 in inits:
+            T = _icp(src_pcd, target, T0)
+            fitness, rms, res = target.evaluate(T, source, final)
+            coverage = target.coverage(T, source, final)
+            notify("candidate", {"fitness": fitness, "rms": rms, "coverage": coverage})
+            results.append((T0, T, fitness, rms, res, coverage))
+        results.sort(key=lambda r: (-min(r[2], r[5]), r[3]))
+        best = results[0]
+        if best[2] < min_fitness or best[3] > max_rms or best[5] < min_coverage:
+            raise RegistrationError(
+                f"camera calibration failed: best ICP fitness {best[2]:.2f} (need >= {min_fitness:.2f}), "
+                f"rms {best[3] * 1e3:.2f} mm (need <= {max_rms * 1e3:.2f} mm), top coverage {best[5]:.2f} "
+                f"(need >= {min_coverage:.2f}); is phantom_size right?",
+                fitness=best[2], rms=best[3])
+        plausible = []
+        for r in results:
+            if r[2] >= best[2] - 0.05 and r[5] >= best[5] - 0.05 and r[3] <= 1.5 * best[3] + 2e-4:
+                if not any(_same_pose(r[1], p[1]) for p in plausible):
+                    plausible.append(r)
+        if len(plausible) > 1:
+            if not hints:
+                raise RegistrationError(
+                    f"{len(plausible)} poses fit the reference cloud equally well (the phantom is symmetric); "
+                    "give hints (raw frames with the instrument in view) or picked points",
+                    fitness=best[2], rms=best[3])
+            scores = [instrument_support(r[1], hints, size, probe_radius=r_probe, shaft_radius=shaft_radius)
+                      for r in plausible]
+            order = np.argsort(scores)[::-1]
+            s1, s2 = scores[order[0]], scores[order[1]]
+            notify("candidate", {"instrument_support": scores})
+            if s1 < 10 or s1 < 2 * s2 or s1 - s2 < 10:
+                raise RegistrationError(
+                    f"cannot resolve the phantom's symmetry: instrument support of the candidate poses is "
+                    f"{sorted(scores, reverse=True)} points (need >= 10 and 2x the runner-up); "
+                    "use frames with the instrument clearly in view, or picked points",
+                    fitness=best[2], rms=best[3])
+            best = plausible[int(order[0])]
+        T_init, T, fitness, rms, res, coverage = best
+        method = "auto"
+
+    if fitness < min_fitness or rms > max_rms or coverage < min_coverage:
+        raise RegistrationError(
+            f"camera calibration ({method}) does not fit: fitness {fitness:.2f} (need >= {min_fitness:.2f}), "
+            f"rms {rms * 1e3:.2f} mm (need <= {max_rms * 1e3:.2f} mm), top coverage {coverage:.2f} "
+            f"(need >= {min_coverage:.2f})", fitness=fitness, rms=rms)
+    notify("done", {"fitness": fitness, "rms": rms, "coverage": coverage})
+    return CameraFit(T=T, fitness=fitness, rms=rms, T_init=np.asarray(T_init, dtype=np.float64),
+                     residuals=res, method=method, coverage=coverage)
