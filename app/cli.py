@@ -1,0 +1,193 @@
+"""``tissuetwin`` command line: generate, replay and the demo.
+
+Heavy modules (open3d, numba kernels, torch) are imported inside the commands so that
+``tissuetwin --help`` starts fast. Domain errors print one clear line and exit 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+from core.errors import TissueTwinError
+
+DEFAULT_DATA = Path("data")
+
+
+@contextmanager
+def _progress(description: str):
+    """Yield a ``callback(fraction, message)`` that drives a rich progress bar."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    with Progress(
+        TextColumn("[bold]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>3.0f}%"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+        TextColumn("{task.fields[msg]}"),
+        transient=False,
+    ) as progress:
+        task = progress.add_task(description, total=1.0, msg="")
+
+        def callback(fraction: float, message: str = "") -> None:
+            progress.update(task, completed=min(max(fraction, 0.0), 1.0), msg=message)
+
+        yield callback
+        progress.update(task, completed=1.0)
+
+
+def _parse_effects(text: str | None) -> list[dict]:
+    if not text:
+        return []
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise TissueTwinError(f"--effects must be a JSON list of objects: {exc}") from exc
+    if isinstance(value, dict):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+        raise TissueTwinError("--effects must be a JSON list of objects like [{\"kind\": \"gravity\"}]")
+    return value
+
+
+def cmd_generate(args) -> int:
+    from core.lab import generate_session
+
+    effects = _parse_effects(args.effects)
+    with _progress(f"generating {args.preset} session") as cb:
+        path = generate_session(
+            args.out, preset=args.preset, seed=args.seed, effects=effects, with_force=args.force,
+            overwrite=args.overwrite, callback=cb,
+        )
+    print(f"session written to {path}")
+    return 0
+
+
+def _replay_config(args):
+    from core.simulation import SimulationConfig, effect_from_dict
+    from core.simulation.replay import ReplayConfig
+
+    sim = SimulationConfig(dt=args.dt) if getattr(args, "dt", None) else SimulationConfig()
+    effects = tuple(effect_from_dict(e) for e in _parse_effects(getattr(args, "effects", None)))
+    return ReplayConfig(
+        youngs_modulus=args.youngs,
+        poisson_ratio=args.poisson,
+        grid=tuple(args.grid),
+        simulation=sim,
+        effects=effects,
+        sequences=tuple(args.sequences) if args.sequences else None,
+    )
+
+
+def _print_replay(result, title: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
+    table = Table(title=title)
+    for col in ("sequence", "role", "frames", "status", "mean error (mm)", "sim time (s)"):
+        table.add_column(col, justify="right" if col not in ("sequence", "role", "status") else "left")
+    for name, s in result.sequences.items():
+        err = f"{s.mean_error * 1e3:.3f}" if s.status == "ok" else "N/A"
+        table.add_row(name, s.role, str(s.frame_times.size), s.status, err, f"{s.simulation.wall_time:.2f}")
+    console.print(table)
+    cal = result.calibration
+    console.print(
+        f"calibration: robot RMS {cal.robot_rms * 1e3:.2f} mm, camera ICP RMS {cal.camera_rms * 1e3:.2f} mm "
+        f"(fitness {cal.camera_fitness:.2f})"
+    )
+    console.print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items()))
+
+
+def _run_replay(session: Path, out: Path, config, title: str):
+    from core.simulation.replay import replay, write_replay
+
+    with _progress(f"replaying {session.name}") as cb:
+        result = replay(session, config, callback=cb)
+    write_replay(result, out)
+    _print_replay(result, title)
+    print(f"results written to {out}/replay.json")
+    return result
+
+
+def cmd_replay(args) -> int:
+    config = _replay_config(args)
+    _run_replay(Path(args.session), Path(args.out), config, f"{args.session}  (E = {config.youngs_modulus:g} Pa)")
+    return 0
+
+
+def cmd_demo(args) -> int:
+    """Generate the demo session if absent, replay it, and replay the shared sample session."""
+    from core.io import read_session
+    from core.lab import generate_session
+
+    data = Path(args.data)
+    session = data / "demo-session"
+    if not (session / "session.json").exists():
+        with _progress("generating the demo session (once)") as cb:
+            generate_session(session, preset="demo", seed=0, callback=cb, overwrite=True)
+    else:
+        read_session(session)  # validates what is there
+    config = _replay_config(args)
+    _run_replay(session, data / "runs" / "demo-replay", config, f"demo session (E = {config.youngs_modulus:g} Pa)")
+    sample = Path(args.sample) if args.sample else None
+    if sample is not None and (sample / "session.json").exists():
+        _run_replay(sample, data / "runs" / "sample-replay", config, f"{sample} (E = {config.youngs_modulus:g} Pa)")
+    return 0
+
+
+def _add_model_options(p) -> None:
+    p.add_argument("--youngs", type=float, default=5000.0, help="Young's modulus E in Pa (default 5e3, the paper's)")
+    p.add_argument("--poisson", type=float, default=0.44, help="Poisson's ratio (default 0.44)")
+    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="node grid (default 13 5 5)")
+    p.add_argument("--dt", type=float, default=None, help="time step in s (default 1/120)")
+    p.add_argument("--sequences", nargs="*", default=None, help="sequence names (default: all)")
+    p.add_argument("--effects", default=None, help="JSON list of model extensions, e.g. '[{\"kind\": \"gravity\"}]'")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tissuetwin", description="Tissue Twin: FEM replay, correction and diagnosis of palpation data.")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("generate", help="write a synthetic session with the virtual lab")
+    p.add_argument("--preset", choices=("small", "demo", "paper"), default="small")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--effects", default=None, help="JSON list of effects, e.g. '[{\"kind\": \"gravity\", \"g\": [0, 0, -9.81]}]'")
+    p.add_argument("--force", action="store_true", help="write probe force columns fx, fy, fz")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing session folder")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_generate)
+
+    p = sub.add_parser("replay", help="replay a session and measure the paper's error")
+    p.add_argument("session")
+    p.add_argument("--out", required=True)
+    _add_model_options(p)
+    p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("demo", help="generate (once) and replay the demo session, then the shared sample session")
+    p.add_argument("--data", default=str(DEFAULT_DATA), help="data directory (default ./data)")
+    p.add_argument("--sample", default=str(Path("..") / "shared" / "sample-session"), help="a session from another tool to replay too")
+    _add_model_options(p)
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except TissueTwinError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except FileExistsError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
