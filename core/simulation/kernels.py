@@ -32,7 +32,7 @@ def _quat_mat(qx, qy, qz, qw, R):
     R[8] = 1 - 2 * (xx + yy)
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract", "arcp", "nsz"})
 def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out):
     """Fused per-element pass: deformation gradient, rotation, PK1 stress, force scatter.
 
@@ -104,14 +104,15 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
                 else:
                     inv = 1.0 / (abs(tr) + 1e-9)
                     t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
-                ang = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-                if ang > 1.0:  # damp huge steps (inverted elements)
-                    t0, t1, t2, ang = t0 / ang, t1 / ang, t2 / ang, 1.0
-                if ang < 1e-14:
+                ang2 = t0 * t0 + t1 * t1 + t2 * t2
+                if ang2 > 1.0:  # damp huge steps (inverted elements)
+                    sc = 1.0 / np.sqrt(ang2)
+                    t0, t1, t2 = t0 * sc, t1 * sc, t2 * sc
+                if ang2 < 1e-28:
                     break
-                h = 0.5 * ang
-                sn = np.sin(h) / ang
-                x1, y1, z1, w1 = t0 * sn, t1 * sn, t2 * sn, np.cos(h)
+                # unnormalised (theta/2, 1): a rotation by 2 atan(|theta|/2), same fixed
+                # point as the exact exp map, without sin/cos; normalised below
+                x1, y1, z1, w1 = 0.5 * t0, 0.5 * t1, 0.5 * t2, 1.0
                 # q <- q * dq (rotation applied in the element frame)
                 nx_ = qw * x1 + qx * w1 + qy * z1 - qz * y1
                 ny_ = qw * y1 - qx * z1 + qy * w1 + qz * x1
@@ -293,3 +294,38 @@ def sphere_contacts(x, triangles, centre, radius):
         A[m] = 0.5 * area2
         m += 1
     return idx[:m], W[:m], N[:m], D[:m], A[:m]
+
+
+@njit(cache=True)
+def constraint_matrix(nodes, weights, directions, free_index, slot):
+    """Dense form of low-rank constraint rows ``h_c = direction_c (x) weights_c``.
+
+    Args:
+        nodes: (k, 3) int64 triangle nodes; weights: (k, 3) barycentric weights;
+        directions: (k, 3) unit vectors; free_index: (3N,) int64 dof -> free index or -1;
+        slot: (n_free,) int64 scratch array filled with -1 (restored before returning).
+
+    Returns:
+        (uniq (m,) int64 free dofs touched, C (m, k) coefficients) with H = E_uniq C.
+    """
+    k = nodes.shape[0]
+    uniq = np.empty(9 * k, dtype=np.int64)
+    m = 0
+    for c in range(k):
+        for j in range(3):
+            for a in range(3):
+                d = free_index[3 * nodes[c, j] + a]
+                if d >= 0 and slot[d] < 0:
+                    slot[d] = m
+                    uniq[m] = d
+                    m += 1
+    C = np.zeros((m, k))
+    for c in range(k):
+        for j in range(3):
+            for a in range(3):
+                d = free_index[3 * nodes[c, j] + a]
+                if d >= 0:
+                    C[slot[d], c] += weights[c, j] * directions[c, a]
+    for i in range(m):
+        slot[uniq[i]] = -1
+    return uniq[:m], C

@@ -60,7 +60,8 @@ class SimulationConfig:
             weak trace of E in displacement-controlled data.
         newton_iterations: corrections per step with the constant rest Jacobian
             (1 is the linearly implicit Euler step; more converge to full implicit Euler).
-        polar_iterations: iterations of the warm-started rotation extraction per step.
+        polar_iterations: Newton iterations of the warm-started rotation extraction per
+            force evaluation (quadratically convergent; rotations change little per step).
         integrator: "implicit_euler" (default) or "symplectic_euler" (explicit,
             conditionally stable; for comparison and for testing divergence handling).
         friction_slip_speed: regularisation speed of Coulomb friction, m/s; below it
@@ -74,7 +75,7 @@ class SimulationConfig:
     rayleigh_stiffness: float = 0.1
     contact_stiffness: float = 1e7
     newton_iterations: int = 1
-    polar_iterations: int = 2
+    polar_iterations: int = 1
     integrator: str = "implicit_euler"
     friction_slip_speed: float = 1e-3
     divergence_limit: float = 1.0
@@ -195,8 +196,9 @@ class _BandedSPD:
 
     def inverse_rows(self, dofs: np.ndarray) -> np.ndarray:
         """(len(dofs), n) rows (= columns, A is symmetric) of A^{-1}, computed once per dof and cached."""
-        missing = np.unique(dofs[self._slot[dofs] < 0])
-        if missing.size:
+        slots = self._slot[dofs]
+        if np.any(slots < 0):
+            missing = np.unique(dofs[slots < 0])
             need = self._used + missing.size
             if need > self._rows.shape[0]:
                 grown = np.zeros((max(need, 2 * self._rows.shape[0], 32), self.n))
@@ -207,7 +209,8 @@ class _BandedSPD:
             self._rows[self._used : need] = self.solve(E).T
             self._slot[missing] = np.arange(self._used, need)
             self._used = need
-        return self._rows[self._slot[dofs]]
+            slots = self._slot[dofs]
+        return self._rows[slots]
 
 
 @dataclass(frozen=True)
@@ -226,6 +229,9 @@ class Model:
         support_stiffness: (N,) N/m. body_force: (N, 3) N. friction: Coulomb mu.
         K: (3N, 3N) CSR small-strain elastic stiffness (no supports), N/m.
         terms: extra stress terms (e.g. a Maxwell arm).
+        mass_dofs: (3N,) node masses repeated per dof, kg.
+        free_index: (3N,) int64, dof -> index among free dofs, -1 for fixed dofs.
+        scratch_slot: (3F,) int64 work array of the contact kernel (all -1 between calls).
     """
 
     mesh: TetMesh
@@ -243,6 +249,9 @@ class Model:
     friction: float
     K: sp.csr_matrix
     terms: tuple
+    mass_dofs: np.ndarray = field(repr=False, default=None)
+    free_index: np.ndarray = field(repr=False, default=None)
+    scratch_slot: np.ndarray = field(repr=False, default=None)
     _factor: _BandedSPD | None = field(repr=False, default=None)
 
     @property
@@ -328,6 +337,8 @@ def build_model(
     K = fem.linear_stiffness(builder.elements, mu, lam)
     free = ~builder.fixed
     free_dofs = (3 * np.flatnonzero(free)[:, None] + np.arange(3)[None, :]).ravel()
+    free_index = np.full(3 * mesh.n_nodes, -1, dtype=np.int64)
+    free_index[free_dofs] = np.arange(free_dofs.size)
     factor = None
     if config.integrator == "implicit_euler":
         dt = config.dt
@@ -354,5 +365,8 @@ def build_model(
         friction=float(builder.friction),
         K=K,
         terms=tuple(builder.terms),
+        mass_dofs=np.repeat(builder.node_mass, 3),
+        free_index=free_index,
+        scratch_slot=np.full(free_dofs.size, -1, dtype=np.int64),
         _factor=factor,
     )

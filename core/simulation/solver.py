@@ -104,35 +104,29 @@ def internal_forces(model: Model, x: np.ndarray, state: State, dt: float):
     return f, q, tuple(new_terms)
 
 
-def _free_index(model: Model) -> np.ndarray:
-    idx = np.full(3 * model.mesh.n_nodes, -1, dtype=np.int64)
-    idx[model.free_dofs] = np.arange(model.free_dofs.size)
-    return idx
+def _woodbury_solve(model: Model, rhs, blocks):
+    """Solve ``(A + H diag(omega) H^T) d = rhs + H beta`` with A's cached factor.
 
-
-def _contact_rows(contacts: Contacts, directions: np.ndarray, free_index: np.ndarray):
-    """Rows h = direction (x) weights over the free dofs: ((k, 9) dof idx, (k, 9) coef)."""
-    dofs = (3 * contacts.nodes[:, :, None] + np.arange(3)[None, None, :]).reshape(-1, 9)
-    coef = (contacts.weights[:, :, None] * directions[:, None, :]).reshape(-1, 9)
-    return free_index[dofs], coef
-
-
-def _woodbury_solve(model: Model, rhs, dofs, coef, omega, beta):
-    """Solve ``(A + H diag(omega) H^T) d = rhs + H beta`` with A's cached factor."""
+    ``blocks`` is a list of (nodes (k,3), weights (k,3), directions (k,3), omega (k,),
+    beta (k,)) constraint groups (normal contact, friction tangents).
+    """
     factor = model._factor
     y = factor.solve(rhs)
-    if omega.size == 0:
+    blocks = [b for b in blocks if b[0].shape[0]]
+    if not blocks:
         return y
-    valid = dofs >= 0
-    if not np.any(valid):
+    nodes = np.concatenate([b[0] for b in blocks]) if len(blocks) > 1 else blocks[0][0]
+    weights = np.concatenate([b[1] for b in blocks]) if len(blocks) > 1 else blocks[0][1]
+    dirs = np.concatenate([b[2] for b in blocks]) if len(blocks) > 1 else blocks[0][2]
+    omega = np.concatenate([b[3] for b in blocks]) if len(blocks) > 1 else blocks[0][3]
+    beta = np.concatenate([b[4] for b in blocks]) if len(blocks) > 1 else blocks[0][4]
+    uniq, C = kernels.constraint_matrix(nodes, weights, dirs, model.free_index, model.scratch_slot)
+    if uniq.size == 0:
         return y
-    k = omega.size
-    uniq, inv = np.unique(dofs[valid], return_inverse=True)
-    rows_k = np.nonzero(valid)[0]
-    C = np.bincount(inv * k + rows_k, weights=coef[valid], minlength=uniq.size * k).reshape(uniq.size, k)
     ZT = C.T @ factor.inverse_rows(uniq)  # (k, n) = (A^{-1} H)^T
     y = y + beta @ ZT
-    S = np.diag(1.0 / omega) + ZT[:, uniq] @ C
+    S = C.T @ ZT[:, uniq].T
+    S[np.diag_indices_from(S)] += 1.0 / omega
     return y - np.linalg.solve(S, C.T @ y[uniq]) @ ZT
 
 
@@ -164,15 +158,11 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
     if cfg.integrator == "symplectic_euler":
         return _step_explicit(model, state, centre, radius, vp)
 
-    fi = model.__dict__.setdefault("_free_index_cache", None)
-    if fi is None:
-        fi = _free_index(model)
-        object.__setattr__(model, "_free_index_cache", fi)
-    m3 = np.repeat(model.node_mass, 3)
+    m3 = model.mass_dofs
     fd = model.free_dofs
     v0 = state.v.ravel()
     x0 = state.x.ravel()
-    vg = v0.copy()
+    vg = v0
     contacts = None
     q, terms = state.q, state.term_state
     for it in range(cfg.newton_iterations):
@@ -182,23 +172,19 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
         r = (dt * (f.ravel() - damp) - m3 * (vg - v0))[fd]
         if it == 0:
             contacts = find_contacts(xp.reshape(-1, 3), tris, centre, radius)
-        keep = np.ones(len(contacts), dtype=bool)
-        for _ in range(2):  # second pass drops constraints that would pull (adhesion)
-            c = _subset(contacts, keep)
-            dofs, coef, omega, beta = _constraint_terms(model, c, xp, vg, vp, fi, dt, centre, radius)
-            dv = _woodbury_solve(model, r, dofs, coef, omega, beta)
-            if len(c) == 0:
+        while True:  # re-solve without constraints that would pull (adhesion)
+            blocks = _constraint_blocks(model, contacts, xp, vg, vp, dt, centre, radius)
+            dv = _woodbury_solve(model, r, blocks)
+            if len(contacts) == 0:
                 break
             x_try = xp.copy()
             x_try[fd] += dt * dv
-            phi = _gap(c, x_try.reshape(-1, 3), centre, radius)
-            pulling = phi < 0
+            pulling = _gap(contacts, x_try.reshape(-1, 3), centre, radius) < 0
             if not np.any(pulling):
                 break
-            keep[np.flatnonzero(keep)[pulling]] = False
+            contacts = _subset(contacts, ~pulling)
         vg = vg.copy()
         vg[fd] += dv
-        contacts = _subset(contacts, keep)
     x_new = x0 + dt * vg
     xn = x_new.reshape(-1, 3)
     force = np.zeros(3)
@@ -222,19 +208,16 @@ def _gap(c: Contacts, x: np.ndarray, centre: np.ndarray, radius: float) -> np.nd
     return radius - np.einsum("kd,kd->k", c.normals, p - centre)
 
 
-def _constraint_terms(model: Model, c: Contacts, xp, vg, vp, fi, dt, centre, radius):
+def _constraint_blocks(model: Model, c: Contacts, xp, vg, vp, dt, centre, radius):
     """Low-rank terms of the active contacts: penalty along the normal, and
     regularised Coulomb friction along two tangents (Wriggers, "Computational
     Contact Mechanics", Sec. 5.2: viscous regularisation of the stick branch)."""
     cfg = model.config
     if len(c) == 0:
-        z = np.zeros((0, 9))
-        return z.astype(np.int64), z, np.zeros(0), np.zeros(0)
+        return []
     k = cfg.contact_stiffness * c.area
     phi = _gap(c, xp.reshape(-1, 3), centre, radius)
-    dofs, coef = _contact_rows(c, c.normals, fi)
-    omega = dt * dt * k
-    beta = dt * k * phi
+    blocks = [(c.nodes, c.weights, c.normals, dt * dt * k, dt * k * phi)]
     if model.friction > 0:
         fn = np.maximum(k * phi, 0.0)
         t1, t2 = _tangents(c.normals)
@@ -242,18 +225,13 @@ def _constraint_terms(model: Model, c: Contacts, xp, vg, vp, fi, dt, centre, rad
         rel = v_pt - vp[None, :]
         rel_t = rel - np.einsum("kd,kd->k", rel, c.normals)[:, None] * c.normals
         speed = np.maximum(np.linalg.norm(rel_t, axis=1), cfg.friction_slip_speed)
-        ct = model.friction * fn / speed
-        d1, c1 = _contact_rows(c, t1, fi)
-        d2, c2 = _contact_rows(c, t2, fi)
-        w_t = dt * ct
-        b1 = dt * ct * (t1 @ vp - np.einsum("kd,kd->k", t1, v_pt))
-        b2 = dt * ct * (t2 @ vp - np.einsum("kd,kd->k", t2, v_pt))
+        w_t = dt * model.friction * fn / speed
         keep = w_t > 0
-        dofs = np.concatenate([dofs, d1[keep], d2[keep]])
-        coef = np.concatenate([coef, c1[keep], c2[keep]])
-        omega = np.concatenate([omega, w_t[keep], w_t[keep]])
-        beta = np.concatenate([beta, b1[keep], b2[keep]])
-    return dofs, coef, omega, beta
+        if np.any(keep):
+            for t in (t1, t2):
+                beta = w_t * (t @ vp - np.einsum("kd,kd->k", t, v_pt))
+                blocks.append((c.nodes[keep], c.weights[keep], t[keep], w_t[keep], beta[keep]))
+    return blocks
 
 
 def _step_explicit(model: Model, state: State, centre, radius, vp):
