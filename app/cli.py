@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 from core.errors import TissueTwinError
 
-DEFAULT_DATA = Path("data")
+DEFAULT_DATA = Path(os.environ.get("TISSUETWIN_DATA", "data"))
 
 
 @contextmanager
@@ -100,6 +101,7 @@ def _print_replay(result, title: str) -> None:
         f"calibration: robot RMS {cal.robot_rms * 1e3:.2f} mm, camera ICP RMS {cal.camera_rms * 1e3:.2f} mm "
         f"(fitness {cal.camera_fitness:.2f})"
     )
+    console.print(f"noise floor (rest reference cloud to rest mesh): {result.noise_floor * 1e3:.3f} mm")
     console.print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items()))
 
 

@@ -134,6 +134,17 @@ class PreparedSession:
     calibration: Calibration
     sequences: dict[str, PreparedSequence]
     timings: dict[str, float]
+    reference: np.ndarray | None = None
+
+    def noise_floor(self, grid=(13, 5, 5), factor: int = 3) -> float:
+        """Error of a perfect rest-state model, estimated from the data: the mean
+        distance (m) from the cleaned reference cloud (phantom at rest) to the
+        super-sampled rest mesh. It holds the sensor noise, the registration residual
+        and the super-sampling spacing; NaN without a reference cloud."""
+        if self.reference is None or self.reference.shape[0] == 0:
+            return float("nan")
+        rest = box_mesh(self.size, grid).nodes
+        return float(point_to_mesh_distances(self.reference, supersampled_surface(rest, grid, factor)).mean())
 
 
 @dataclass(frozen=True)
@@ -169,6 +180,7 @@ class ReplayResult:
     calibration: Calibration
     sequences: dict[str, SequenceReplay]
     timings: dict[str, float]
+    noise_floor: float = float("nan")
 
     def to_json(self) -> dict:
         return {
@@ -188,6 +200,7 @@ class ReplayResult:
                 for name, s in self.sequences.items()
             },
             "calibration": self.calibration.to_json(),
+            "noise_floor": None if not np.isfinite(self.noise_floor) else float(self.noise_floor),
             "timings": {k: float(v) for k, v in self.timings.items()},
         }
 
@@ -295,6 +308,12 @@ def prepare_session(
         if callback:
             callback(i / max(len(names), 1), f"cleaning {name}")
         prepared[name] = _prepare_sequence(session, name, cal, config)
+    reference = session.reference_cloud()
+    reference_phantom = None
+    if reference is not None:
+        reference_phantom = clean_cloud(
+            reference, cal.T_phantom_camera, session.meta.phantom.size, voxel_size=config.voxel_size
+        ).points_phantom
     timings["clean"] = time.perf_counter() - t0
     meta = session.meta
     return PreparedSession(
@@ -305,6 +324,7 @@ def prepare_session(
         calibration=cal,
         sequences=prepared,
         timings=timings,
+        reference=reference_phantom,
     )
 
 
@@ -411,7 +431,14 @@ def replay(
     err_time = time.perf_counter() - t0 - sim_time
     timings["simulate"] = sim_time
     timings["error"] = err_time
-    return ReplayResult(session=prepared.path, config=config, calibration=prepared.calibration, sequences=results, timings=timings)
+    return ReplayResult(
+        session=prepared.path,
+        config=config,
+        calibration=prepared.calibration,
+        sequences=results,
+        timings=timings,
+        noise_floor=prepared.noise_floor(config.grid, config.supersample),
+    )
 
 
 def _scaled(callback: Callback | None, lo: float, hi: float) -> Callback | None:
