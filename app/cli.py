@@ -101,7 +101,7 @@ def _print_replay(result, title: str) -> None:
         f"calibration: robot RMS {cal.robot_rms * 1e3:.2f} mm, camera ICP RMS {cal.camera_rms * 1e3:.2f} mm "
         f"(fitness {cal.camera_fitness:.2f})"
     )
-    console.print(f"noise floor (rest reference cloud to rest mesh): {result.noise_floor * 1e3:.3f} mm")
+    console.print(f"noise floor (rest frames to rest mesh): {result.noise_floor * 1e3:.3f} mm")
     console.print("timings (s): " + ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items()))
 
 

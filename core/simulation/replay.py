@@ -136,15 +136,30 @@ class PreparedSession:
     timings: dict[str, float]
     reference: np.ndarray | None = None
 
+    def rest_frames(self, name: str, *, settle: float = 1.0, clearance: float = 0.002) -> np.ndarray:
+        """Indices of frames of sequence ``name`` where the phantom is at rest: the probe
+        has been at least ``clearance`` (m) clear of the box for the last ``settle`` s."""
+        seq = self.sequences[name]
+        lag = np.linspace(0.0, settle, 11)
+        times = (seq.frame_times[:, None] - lag[None, :]).ravel()
+        c = seq.probe.at(times)
+        outside = np.maximum(np.maximum(-c, c - self.size), 0.0)
+        clear = np.linalg.norm(outside, axis=1) > self.probe_radius + clearance
+        return np.flatnonzero(clear.reshape(-1, lag.size).all(axis=1))
+
     def noise_floor(self, grid=(13, 5, 5), factor: int = 3) -> float:
-        """Error of a perfect rest-state model, estimated from the data: the mean
-        distance (m) from the cleaned reference cloud (phantom at rest) to the
+        """Error of a perfect model, estimated from the data: the mean distance (m)
+        from the measured points of rest frames (see :meth:`rest_frames`) to the
         super-sampled rest mesh. It holds the sensor noise, the registration residual
-        and the super-sampling spacing; NaN without a reference cloud."""
-        if self.reference is None or self.reference.shape[0] == 0:
+        and the super-sampling spacing. Falls back to the cleaned reference cloud when
+        no sequence has a rest frame; NaN when neither exists."""
+        surface = supersampled_surface(box_mesh(self.size, grid).nodes, grid, factor)
+        points = [self.sequences[n].clouds[i] for n in self.sequences for i in self.rest_frames(n)]
+        if not points and self.reference is not None and self.reference.shape[0]:
+            points = [self.reference]
+        if not points:
             return float("nan")
-        rest = box_mesh(self.size, grid).nodes
-        return float(point_to_mesh_distances(self.reference, supersampled_surface(rest, grid, factor)).mean())
+        return float(point_to_mesh_distances(np.concatenate(points), surface).mean())
 
 
 @dataclass(frozen=True)
