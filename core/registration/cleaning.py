@@ -111,13 +111,23 @@ def _segment_plane(points: np.ndarray, threshold: float, iterations: int, seed: 
     plane = np.asarray(plane, dtype=np.float64).reshape(4)
     plane /= np.linalg.norm(plane[:3])
     inliers = np.asarray(inliers, dtype=np.int64)
-    if inliers.size >= 3:  # least-squares refit on the inliers: less dependent on the sample drawn
+    # open3d runs RANSAC iterations in parallel threads, so even with a seed its sample is
+    # not reproducible. Refit by least squares on the threshold inliers until the inlier
+    # set stops changing: the result then depends on the data, not on the sample drawn
+    # (identical inputs give bit-identical planes, which sweeps rely on).
+    for _ in range(10):
+        if inliers.size < 3:
+            break
         sub = points[inliers]
         c = sub.mean(axis=0)
         n = np.linalg.svd(sub - c, full_matrices=False)[2][2]
         if n @ plane[:3] < 0:
             n = -n
         plane = np.r_[n, -n @ c]
+        new = np.flatnonzero(np.abs(points @ plane[:3] + plane[3]) < threshold).astype(np.int64)
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
     return plane, inliers
 
 

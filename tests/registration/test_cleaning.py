@@ -254,3 +254,18 @@ def test_cleaning_paper_sized_frame():
     assert 40000 < n < 60000
     assert res.counts["kept"] > 10000
     assert sum(v for k, v in res.counts.items() if k != "raw") == res.counts["raw"]
+
+
+def test_cleaning_is_deterministic_on_a_real_frame(sample_session):
+    """Sweeps compare many runs on the same cleaned clouds: cleaning must not depend on
+    open3d's multithreaded RANSAC sample (regression: it did)."""
+    import json
+
+    from core.io import read_session
+
+    session = read_session(sample_session)
+    T = np.array(json.loads((sample_session / "truth.json").read_text())["T_phantom_camera"])
+    pts = session.sequences["seq02"].cloud(60)
+    runs = [clean_cloud(pts, T, session.meta.phantom.size, voxel_size=0.001, seed=7).points_phantom for _ in range(6)]
+    for r in runs[1:]:
+        np.testing.assert_array_equal(r, runs[0])

@@ -1,0 +1,55 @@
+"""Virtual lab: synthetic palpation sessions with a known truth.
+
+A software replay of the experiment of Wu et al. 2020 (Sec. 4): a dVRK PSM pokes a gel
+block, an SR300-like depth camera records it, a truth FEM (finer and more faithful than
+the replay model, plus any switched-on effect) deforms it. Sessions are written in the
+``tissue-session/1`` format with a ``truth.json``.
+
+Public surface::
+
+    path = generate_session(out, preset="small", seed=0, effects=[{"kind": "gravity"}])
+
+Modules: :mod:`core.lab.probing` (probe trajectories), :mod:`core.lab.camera` (depth
+camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json).
+"""
+
+from core.lab.camera import DepthCamera, DepthNoise, Instrument, Intrinsics
+from core.lab.generate import (
+    GENERATOR_NAME,
+    GENERATOR_VERSION,
+    INPUT_EFFECTS,
+    PHANTOM_MASS,
+    PHANTOM_SIZE,
+    PHYSICAL_EFFECTS,
+    PRESET_NOTES,
+    PRESETS,
+    LabConfig,
+    LabError,
+    complete_effects,
+    generate_session,
+)
+from core.lab.probing import Poke, ProbePlan, ProbeTrajectory, ProbingConfig, plan_sequence
+
+__all__ = [
+    "GENERATOR_NAME",
+    "GENERATOR_VERSION",
+    "INPUT_EFFECTS",
+    "PHANTOM_MASS",
+    "PHANTOM_SIZE",
+    "PHYSICAL_EFFECTS",
+    "PRESET_NOTES",
+    "PRESETS",
+    "LabConfig",
+    "LabError",
+    "complete_effects",
+    "generate_session",
+    "DepthCamera",
+    "DepthNoise",
+    "Instrument",
+    "Intrinsics",
+    "Poke",
+    "ProbePlan",
+    "ProbeTrajectory",
+    "ProbingConfig",
+    "plan_sequence",
+]
