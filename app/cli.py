@@ -142,8 +142,97 @@ def cmd_demo(args) -> int:
     return 0
 
 
-def _add_model_options(p) -> None:
-    p.add_argument("--youngs", type=float, default=5000.0, help="Young's modulus E in Pa (default 5e3, the paper's)")
+@contextmanager
+def _trial_progress(description: str):
+    """A rich progress bar counting trials done: yields ``progress(done, total)``."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as bar:
+        task = bar.add_task(description, total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        yield progress
+
+
+def _base_trial(args):
+    from core.identification import Trial
+    from core.simulation import SimulationConfig, effect_from_dict
+
+    effects = tuple(effect_from_dict(e).to_dict() for e in _parse_effects(getattr(args, "effects", None)))
+    sim = SimulationConfig(dt=args.dt) if getattr(args, "dt", None) else SimulationConfig()
+    return Trial(sequence="", youngs_modulus=1.0, poisson_ratio=args.poisson, grid=tuple(args.grid), effects=effects, simulation=sim)
+
+
+def _parse_youngs(text: str) -> list[float]:
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError as exc:
+        raise TissueTwinError(f"--youngs must be comma-separated numbers in Pa, got {text!r}") from exc
+    if not values or any(v <= 0 for v in values):
+        raise TissueTwinError(f"--youngs must be positive values in Pa, got {text!r}")
+    return values
+
+
+def cmd_sweep(args) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    from core.identification import executor, sweep, write_sweep
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    youngs = _parse_youngs(args.youngs)
+    with _progress("calibrating and cleaning") as cb:
+        prepared = prepare_session(args.session, ReplayConfig(grid=tuple(args.grid)), callback=cb)
+    with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _trial_progress("sweep trials") as pr:
+        result = sweep(prepared, youngs, sequences=args.sequences, base=_base_trial(args), refine=args.refine, executor=ex, progress=pr)
+    out = write_sweep(result, args.out)
+    table = Table(title="mean distance cloud -> mesh (mm), cf. Wu et al. 2020 Tables 1-2")
+    table.add_column("E (Pa)", justify="right")
+    table.add_column("mean error (mm)", justify="right")
+    for E, e in result.table().items():
+        table.add_row(f"{E:g}", f"{e * 1e3:.4f}" if e == e else "N/A (diverged)")
+    Console().print(table)
+    print(f"best E: {result.best():g} Pa; wrote {out}/sweep.csv and {out}/sweep.png")
+    return 0
+
+
+def cmd_fit(args) -> int:
+    from core.identification import executor, fit_youngs_modulus
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    with _progress("calibrating and cleaning") as cb:
+        prepared = prepare_session(args.session, ReplayConfig(grid=tuple(args.grid)), callback=cb)
+    with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _trial_progress("fit: E values evaluated") as pr:
+        result = fit_youngs_modulus(
+            prepared, base=_base_trial(args), executor=ex, use_force=None if args.force == "auto" else args.force == "yes",
+            refine_mesh=not args.no_mesh_refinement, progress=lambda n, msg: pr(n, n),
+        )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fit.json").write_text(json.dumps(result.to_json(), indent=2))
+    if result.identifiable:
+        lo, hi = result.interval
+        print(f"Young's modulus: {result.youngs_modulus:.4g} Pa (95 % interval {lo:.4g}-{hi:.4g} Pa), "
+              f"on the {'x'.join(map(str, result.refined))} grid; {result.coarse_value:.4g} Pa on the "
+              f"{'x'.join(map(str, result.grid))} replay grid (volumetric locking)")
+    else:
+        print(f"Young's modulus: not identifiable. {result.reason}")
+    print("errors (mm): " + ", ".join(f"{k} {v * 1e3:.3f}" for k, v in result.errors.items()))
+    print(f"{result.evaluations} sequence replays; wrote {out}/fit.json")
+    return 0
+
+
+def _add_execution_options(p) -> None:
+    p.add_argument("--scheduler", default=None, help="existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster; env TISSUETWIN_SCHEDULER)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes of the local cluster (default 2)")
+    p.add_argument("--serial", action="store_true", help="run trials in this process, without Dask")
+
+
+def _add_model_options(p, *, youngs: bool = True) -> None:
+    if youngs:
+        p.add_argument("--youngs", type=float, default=5000.0, help="Young's modulus E in Pa (default 5e3, the paper's)")
     p.add_argument("--poisson", type=float, default=0.44, help="Poisson's ratio (default 0.44)")
     p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="node grid (default 13 5 5)")
     p.add_argument("--dt", type=float, default=None, help="time step in s (default 1/120)")
@@ -169,6 +258,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     _add_model_options(p)
     p.set_defaults(func=cmd_replay)
+
+    p = sub.add_parser("sweep", help="the paper's grid search over Young's modulus (Tables 1-2)")
+    p.add_argument("session")
+    p.add_argument("--youngs", default="1e1,1e2,1e3,1e4,1e5,1e6", help="comma-separated E values in Pa")
+    p.add_argument("--refine", action="store_true", help="add the paper's fine grid around the best coarse value")
+    p.add_argument("--out", required=True)
+    _add_model_options(p, youngs=False)
+    _add_execution_options(p)
+    p.set_defaults(func=cmd_sweep)
+
+    p = sub.add_parser("fit", help="fit Young's modulus with a 95 % interval, or say it cannot be identified")
+    p.add_argument("session")
+    p.add_argument("--out", required=True)
+    p.add_argument("--force", choices=("auto", "yes", "no"), default="auto", help="use the force columns in the objective (default: when present)")
+    p.add_argument("--no-mesh-refinement", action="store_true", help="skip the refined-grid refit (reports the replay-grid E)")
+    _add_model_options(p, youngs=False)
+    _add_execution_options(p)
+    p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("demo", help="generate (once) and replay the demo session, then the shared sample session")
     p.add_argument("--data", default=str(DEFAULT_DATA), help="data directory (default ./data)")

@@ -52,6 +52,7 @@ class ReplayConfig:
         youngs_modulus: E of the replay model, Pa (default: the paper's identified 5e3).
         poisson_ratio: nu (default 0.44; the paper takes 0.4-0.5 from the literature).
         grid: node grid (nx, ny, nz); the paper's is (13, 5, 5).
+        law: material law, "corotational" (the paper's) or "stable_neo_hookean".
         simulation: numerical settings of the FEM.
         effects: model options beyond the base model (see ``core.simulation.effects``).
         sequences: names to replay; None replays all.
@@ -63,6 +64,7 @@ class ReplayConfig:
     youngs_modulus: float = 5000.0
     poisson_ratio: float = 0.44
     grid: tuple[int, int, int] = (13, 5, 5)
+    law: str = "corotational"
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     effects: tuple[Effect, ...] = ()
     sequences: tuple[str, ...] | None = None
@@ -402,7 +404,7 @@ def build_replay_model(prepared: PreparedSession, config: ReplayConfig):
     return build_model(
         mesh,
         prepared.mass,
-        Material(config.youngs_modulus, config.poisson_ratio),
+        Material(config.youngs_modulus, config.poisson_ratio, config.law),
         config.simulation,
         config.effects,
     )

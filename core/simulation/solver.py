@@ -305,7 +305,9 @@ def static_equilibrium(
         xf[dofs] += lu.solve(r)
         x = xf.reshape(-1, 3)
     else:
-        raise SimulationError("static equilibrium did not converge")
+        raise SimulationError(f"static equilibrium did not converge in {max_iterations} iterations")
+    if not np.all(np.isfinite(x)) or np.abs(x - model.mesh.nodes).max() > model.config.divergence_limit * np.linalg.norm(model.mesh.size):
+        raise SimulationError("static equilibrium left the phantom's size (collapse)")
     f, q, terms = internal_forces(model, x, state, 1.0)
     reactions = np.where(constrained[:, None], -f, 0.0)
     return State(x, np.zeros_like(x), q, terms, 0.0), reactions
@@ -357,11 +359,23 @@ def simulate(
     n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
     step_t = t0 + dt * np.arange(n_steps + 1)
     centres = path.at(step_t)
+    n_nodes = model.mesh.n_nodes
     if state is None:
-        state = static_equilibrium(model)[0] if np.any(model.body_force) else model.initial_state()
+        if np.any(model.body_force):
+            try:
+                state = static_equilibrium(model)[0]
+            except SimulationError as exc:  # e.g. gravity on a far too soft phantom: it collapses
+                nan = np.full((times.size, n_nodes, 3), np.nan)
+                return SimulationResult(
+                    times=times, positions=nan, contact_force=np.full((times.size, 3), np.nan),
+                    probe_centres=path.at(times), probe_radius=float(probe_radius), status="diverged",
+                    message=f"no rest state under the body forces: {exc}", steps=0,
+                    wall_time=time.perf_counter() - t_wall,
+                )
+        else:
+            state = model.initial_state()
     state = state.copy()
     state.t = t0
-    n_nodes = model.mesh.n_nodes
     out_x = np.full((times.size, n_nodes, 3), np.nan)
     out_f = np.full((times.size, 3), np.nan)
     # output j lies in (step_t[k-1], step_t[k]]

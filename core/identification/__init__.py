@@ -1,0 +1,29 @@
+"""Material identification: the paper's sweeps, fits with intervals, and where they run.
+
+    with executor() as ex:                       # local Dask cluster (or scheduler=...)
+        sweep(prepared, PAPER_COARSE, refine=True, executor=ex)
+        fit_youngs_modulus(prepared, executor=ex)
+"""
+
+from core.identification.execution import DaskExecutor, Executor, SerialExecutor, executor
+from core.identification.fit import FitResult, fit_youngs_modulus, refined_grid
+from core.identification.sweep import PAPER_COARSE, SweepResult, refine_grid, sweep, write_sweep
+from core.identification.trials import Trial, TrialResult, run_trial
+
+__all__ = [
+    "DaskExecutor",
+    "Executor",
+    "SerialExecutor",
+    "executor",
+    "FitResult",
+    "fit_youngs_modulus",
+    "refined_grid",
+    "PAPER_COARSE",
+    "SweepResult",
+    "refine_grid",
+    "sweep",
+    "write_sweep",
+    "Trial",
+    "TrialResult",
+    "run_trial",
+]

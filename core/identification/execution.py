@@ -1,0 +1,98 @@
+"""Where trials run: in this process, or on Dask (a local cluster or an existing one).
+
+Every trial is a pure function of (prepared data, trial parameters), and builds its
+own model, so the same trials give the same numbers wherever they run. The prepared
+session (calibration and cleaned clouds) is shipped to the workers once.
+"""
+
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Sequence
+
+__all__ = ["Executor", "SerialExecutor", "DaskExecutor", "executor"]
+
+Progress = Callable[[int, int], None]
+
+
+class Executor:
+    """Runs ``fn(shared, item)`` for every item, in order of the items."""
+
+    def map(self, fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any], progress: Progress | None = None) -> list:
+        raise NotImplementedError
+
+
+class SerialExecutor(Executor):
+    """Runs the trials one after the other in this process."""
+
+    def map(self, fn, shared, items, progress=None):
+        out = []
+        for i, item in enumerate(items):
+            out.append(fn(shared, item))
+            if progress:
+                progress(i + 1, len(items))
+        return out
+
+
+def _single_threaded() -> None:
+    # One BLAS/numba thread per worker process: the workers are the parallelism, and
+    # thread-count-dependent reductions would make results differ from a serial run.
+    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ[var] = "1"
+
+
+class DaskExecutor(Executor):
+    """Runs trials on a ``distributed.Client``.
+
+    The shared object is scattered to every worker once (broadcast); trials are
+    submitted in order and gathered in order, so the result list is independent of
+    scheduling.
+    """
+
+    def __init__(self, client):
+        self.client = client
+
+    def map(self, fn, shared, items, progress=None):
+        from distributed import as_completed
+
+        ref = self.client.scatter(shared, broadcast=True, hash=False)
+        futures = [self.client.submit(fn, ref, item, pure=False) for item in items]
+        done = 0
+        for _ in as_completed(futures):
+            done += 1
+            if progress:
+                progress(done, len(items))
+        return self.client.gather(futures)
+
+
+@contextmanager
+def executor(scheduler: str | None = None, *, workers: int | None = 2, serial: bool = False) -> Iterator[Executor]:
+    """The execution back end for sweeps, fits and diagnoses.
+
+    Args:
+        scheduler: address of an existing Dask scheduler (``tcp://host:8786``); also read
+            from the ``TISSUETWIN_SCHEDULER`` environment variable. None starts a local
+            cluster in this process (worker processes, one thread each).
+        workers: worker processes of the local cluster (default 2, this machine's cores).
+        serial: run in this process without Dask (tests, debugging, reference runs).
+    """
+    if serial or workers == 0:
+        yield SerialExecutor()
+        return
+    scheduler = scheduler or os.environ.get("TISSUETWIN_SCHEDULER") or None
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler) as client:
+            yield DaskExecutor(client)
+        return
+    _single_threaded()
+    with LocalCluster(
+        n_workers=workers or 2,
+        threads_per_worker=1,
+        processes=True,
+        dashboard_address=None,
+        silence_logs=40,
+    ) as cluster, Client(cluster) as client:
+        yield DaskExecutor(client)

@@ -1,0 +1,48 @@
+"""Fits of Young's modulus: honest "cannot tell", and recovery when force data pin E down."""
+
+import json
+
+import pytest
+
+from core.identification import Trial, executor, fit_youngs_modulus
+from core.simulation.replay import prepare_session
+
+
+def test_displacement_only_without_gravity_is_not_identifiable(small_session):
+    """The quasi-static shape of a homogeneous linear-elastic body under a displacement-
+    controlled probe does not depend on E: the fit must say so, not report a value."""
+    prepared = prepare_session(small_session)
+    with executor(serial=True) as ex:
+        fit = fit_youngs_modulus(prepared, executor=ex, n_boot=200)
+    assert fit.identifiable is False
+    assert fit.youngs_modulus is None and fit.interval is None
+    assert fit.reason.startswith("flat profile")
+    assert "force" in fit.reason  # says what would help
+    data = fit.to_json()
+    assert data["youngs_modulus"]["identifiable"] is False and data["youngs_modulus"]["value"] is None
+    assert set(data["errors"]) == {"train", "validation", "test"}
+    json.dumps(data)  # serialisable as written to fit.json
+
+
+@pytest.fixture(scope="module")
+def force_session(tmp_path_factory):
+    from core.lab import generate_session
+
+    return generate_session(tmp_path_factory.mktemp("lab") / "force-s4", preset="small", seed=4, with_force=True)
+
+
+def test_force_columns_pin_down_youngs_modulus(force_session):
+    """With measured probe force, E is identifiable. The fit uses the truth's material law
+    (stable neo-Hookean): with the paper's corotational law the same data give ~5.9 kPa,
+    a model-form bias of the linear law at 3-10 mm indentations, not an identification
+    error. The replay grid alone (13x5x5) is stiffened by volumetric locking (~3.1 kPa);
+    the refit on the refined grid corrects it."""
+    truth = json.loads((force_session / "truth.json").read_text())["youngs_modulus"]
+    prepared = prepare_session(force_session)
+    with executor(serial=True) as ex:
+        fit = fit_youngs_modulus(prepared, base=Trial(sequence="", youngs_modulus=1.0, law="stable_neo_hookean"), executor=ex, n_boot=200)
+    assert fit.uses_force and fit.identifiable, fit.reason
+    assert fit.youngs_modulus == pytest.approx(truth, rel=0.10)
+    lo, hi = fit.interval
+    assert lo <= truth <= hi
+    assert fit.coarse_value < 0.8 * truth  # locking on the coarse grid, corrected above
