@@ -249,7 +249,7 @@ def roi_for_box(intrinsics: Intrinsics, T_phantom_camera: np.ndarray, lo, hi) ->
     return (u0, u1, v0, v1)
 
 
-def table_mesh(centre, half_size: float = 0.5, z: float = -0.0005) -> tuple[np.ndarray, np.ndarray]:
+def table_mesh(centre, half_size: float = 0.5, z: float = -1e-5) -> tuple[np.ndarray, np.ndarray]:
     """A square table plane at height ``z`` around ``centre`` (x, y), as (4, 3) vertices
     and (2, 3) upward-facing triangles, phantom frame."""
     cx, cy = float(centre[0]), float(centre[1])
@@ -258,7 +258,7 @@ def table_mesh(centre, half_size: float = 0.5, z: float = -0.0005) -> tuple[np.n
     return v, np.array([[0, 1, 2], [0, 2, 3]])
 
 
-def table_ring_mask(rays: np.ndarray, lo_xy, hi_xy, z: float = -0.0005) -> np.ndarray:
+def table_ring_mask(rays: np.ndarray, lo_xy, hi_xy, z: float = -1e-5) -> np.ndarray:
     """(R,) bool: rays whose crossing with the table plane ``z`` lies in the rectangle
     ``[lo_xy, hi_xy]`` (phantom frame). Used to keep only a ring of table around the
     phantom, so clouds stay small while the table plane remains measurable."""

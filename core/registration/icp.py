@@ -68,6 +68,7 @@ class CameraFit:
         residuals: (N,) float64 point-to-plane distance of every cleaned reference point
             used (inliers and not) to its nearest rest-surface sample, m.
         method: ``"auto"`` or ``"picked"``.
+        table_anchored: z = 0 and the tilt were taken from the table plane after ICP.
         coverage: fraction of the rest surface's upward-facing samples (the top face)
             with a reference point within 3 mm -- the other direction of fitness: a
             model larger than the phantom fits the points well but is not covered.
@@ -80,6 +81,7 @@ class CameraFit:
     residuals: np.ndarray
     method: str
     coverage: float = 1.0
+    table_anchored: bool = False
 
 
 # --------------------------------------------------------------------------- surface
@@ -380,6 +382,33 @@ def _icp(source_pcd, target: _Target, T_init: np.ndarray) -> np.ndarray:
     return T
 
 
+def _anchor_to_table(T: np.ndarray, plane_camera: np.ndarray, size: np.ndarray) -> np.ndarray:
+    """Correct ``T_phantom_camera`` so the table plane (camera frame, normal towards the
+    phantom) maps to z = 0 with normal +z: the smallest rotation about the footprint's
+    centre, then a shift along z. x, y and yaw keep the ICP estimate.
+    """
+    n_cam, d_cam = plane_camera[:3], plane_camera[3]
+    R, t = T[:3, :3], T[:3, 3]
+    n = R @ n_cam
+    p0 = R @ (-d_cam * n_cam) + t  # a table point in the phantom frame
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(n, z)
+    s_, c_ = np.linalg.norm(axis), float(n @ z)
+    C = np.eye(3)
+    if s_ > 1e-12:
+        k = axis / s_
+        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        C = np.eye(3) + s_ * K + (1 - c_) * (K @ K)
+    pivot = np.array([size[0] / 2, size[1] / 2, 0.0])
+    A = np.eye(4)
+    A[:3, :3] = C
+    A[:3, 3] = pivot - C @ pivot
+    T_new = A @ T
+    p0_new = A[:3, :3] @ p0 + A[:3, 3]
+    T_new[2, 3] -= p0_new[2]
+    return T_new
+
+
 def _same_pose(A: np.ndarray, B: np.ndarray, deg: float = 5.0, metres: float = 0.005) -> bool:
     dR = A[:3, :3] @ B[:3, :3].T
     angle = np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1.0, 1.0)))
@@ -398,6 +427,7 @@ def calibrate_camera(
     hints: Sequence[Hint] | None = None,
     stl_path: str | Path | None = None,
     min_fitness: float = 0.6,
+    anchor_table: bool = True,
     max_rms: float = 0.002,
     min_coverage: float = 0.7,
     shaft_radius: float = 0.0045,
@@ -423,6 +453,8 @@ def calibrate_camera(
             (a box always is).
         stl_path: optional ``phantom.stl`` rest surface replacing the box.
         min_fitness: least accepted fitness (fraction of reference points within 3 mm).
+        anchor_table: after ICP, take z = 0 and the tilt from the table plane (RANSAC)
+            instead of the phantom's top, which sags under gravity (default True).
         max_rms: largest accepted point-to-plane inlier rms, m.
         min_coverage: least accepted :attr:`CameraFit.coverage` (the top face must be
             seen; catches a phantom smaller than ``phantom_size``).
@@ -468,6 +500,7 @@ def calibrate_camera(
                 f"picked points do not match rigidly: rms {init.rms * 1e3:.1f} mm (> 10 mm); "
                 f"worst pair {int(np.argmax(init.residuals))}", rms=init.rms)
         T_init = init.T
+        plane = None
         try:
             source, plane = _phantom_cluster(ref, size, seed)
             _check_footprint(_auto_inits(source, plane, size)[1], size)
@@ -535,6 +568,15 @@ def calibrate_camera(
         T_init, T, fitness, rms, res, coverage = best
         method = "auto"
 
+    anchored = False
+    if anchor_table and plane is not None:
+        # The bottom is fixed on the table, so the table defines z = 0 and the tilt; the
+        # top may sag (gravity) or bulge, and ICP onto the nominal box would absorb that.
+        T = _anchor_to_table(T, plane, size)
+        fitness, rms, res = target.evaluate(T, source, final)
+        coverage = target.coverage(T, source, final)
+        anchored = True
+
     if fitness < min_fitness or rms > max_rms or coverage < min_coverage:
         raise RegistrationError(
             f"camera calibration ({method}) does not fit: fitness {fitness:.2f} (need >= {min_fitness:.2f}), "
@@ -542,4 +584,4 @@ def calibrate_camera(
             f"(need >= {min_coverage:.2f})", fitness=fitness, rms=rms)
     notify("done", {"fitness": fitness, "rms": rms, "coverage": coverage})
     return CameraFit(T=T, fitness=fitness, rms=rms, T_init=np.asarray(T_init, dtype=np.float64),
-                     residuals=res, method=method, coverage=coverage)
+                     residuals=res, method=method, coverage=coverage, table_anchored=anchored)

@@ -1,7 +1,6 @@
 """Virtual lab end to end: sessions readable by core.io, truth complete, conventions of the
 input-side effects, determinism, the small preset's cost."""
 
-import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -56,14 +55,14 @@ def to_phantom(T, pts):
 def small(tmp_path_factory):
     out = tmp_path_factory.mktemp("lab") / "small"
     messages = []
-    t0 = time.perf_counter()
     path = generate_session(out, preset="small", seed=3, effects=ALL_EFFECTS, with_force=True,
                             callback=lambda f, m: messages.append((f, m)))
-    return path, time.perf_counter() - t0, messages
+    return path, messages
 
 
-def test_small_session_is_readable_and_fast(small):
-    path, seconds, messages = small
+def test_small_session_is_readable(small):
+    """(Generation time is measured in benchmarks/bench_lab.py, not asserted.)"""
+    path, messages = small
     s = read_session(path, check_clouds=True)
     assert [q.role for q in s.sequences.values()] == ["validation", "test", "train", "train"]
     assert s.has_force
@@ -77,12 +76,10 @@ def test_small_session_is_readable_and_fast(small):
         assert 2000 < min(n) and max(n) < 8000, n  # "a few thousand raw points per frame"
     fr = [f for f, _ in messages]
     assert fr[0] == 0.0 and fr[-1] == 1.0 and all(b >= a - 1e-12 for a, b in zip(fr, fr[1:]))
-    # all effects switched on (the slowest case); the bare small preset takes ~10 s on 2 cores
-    assert seconds < 60, f"small preset took {seconds:.1f} s"
 
 
 def test_truth_holds_every_effect_with_all_parameters(small):
-    path, _, _ = small
+    path, _ = small
     truth = read_truth(path)
     assert truth["format"] == "tissue-truth/1"
     assert truth["generator"]["name"] == "tissuetwin-lab" and truth["generator"]["seed"] == 3
@@ -97,7 +94,7 @@ def test_truth_holds_every_effect_with_all_parameters(small):
     assert by["probe_radius"]["radius"] == 0.0055 and truth["probe"]["radius_true"] == 0.0055
     assert truth["youngs_modulus"] == 5000.0 and truth["poisson_ratio"] == 0.44
     assert truth["material"]["law"] == "stable_neo_hookean"
-    assert truth["mesh"]["grid"] == [19, 7, 7]
+    assert truth["mesh"]["grid"] == list(PRESETS["small"].grid) == [25, 9, 9]
     for key in ("T_phantom_robot", "T_phantom_camera"):
         T = np.asarray(truth[key])
         np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-12)
@@ -110,7 +107,7 @@ def test_truth_holds_every_effect_with_all_parameters(small):
 
 
 def test_corners_and_clouds_agree_with_the_true_transforms(small):
-    path, _, _ = small
+    path, _ = small
     s = read_session(path)
     truth = read_truth(path)
     r_true = truth["probe"]["radius_true"]
@@ -132,7 +129,7 @@ def test_corners_and_clouds_agree_with_the_true_transforms(small):
 def test_kinematics_see_the_pokes_with_offsets_applied(small):
     """Map the written kinematics to the phantom frame, undo the kinematic offset: a top
     poke's deepest point is top + true radius - depth."""
-    path, _, _ = small
+    path, _ = small
     s = read_session(path)
     truth = read_truth(path)
     by = {e["kind"]: e for e in truth["effects"]}
