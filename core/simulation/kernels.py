@@ -32,8 +32,8 @@ def _quat_mat(qx, qy, qz, qw, R):
     R[8] = 1 - 2 * (xx + yy)
 
 
-@njit(cache=True, fastmath={"contract", "arcp", "nsz"})
-def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out):
+@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
+def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out, store, v, beta):
     """Fused per-element pass: deformation gradient, rotation, PK1 stress, force scatter.
 
     Args:
@@ -45,7 +45,11 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
         iterations: rotation-extraction iterations (0: skip rotations).
         law: 0 corotational linear (Müller & Gross 2004), 1 stable neo-Hookean
             (Smith et al. 2018; see :mod:`core.simulation.fem` for the exact energy).
-        F_out, R_out: (E, 9) buffers receiving F and R (row-major 3x3 per element).
+        F_out, R_out: (E, 9) buffers receiving F and R (row-major 3x3 per element)
+            when ``store`` is true (extra stress terms need them).
+        v, beta: node velocities (N, 3) m/s and the Rayleigh stiffness coefficient (s);
+            when beta > 0 the stiffness damping ``-beta K v`` (K the rest small-strain
+            stiffness) is added, computed as the linear stress of the velocity gradient.
 
     Returns:
         (N, 3) internal nodal forces, N.
@@ -157,9 +161,23 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
             P[6] = mu[e] * f6 + g * c6
             P[7] = mu[e] * f7 + g * c7
             P[8] = mu[e] * f8 + g * c8
-        for c in range(9):
-            F_out[e, c] = F[c]
-            R_out[e, c] = R[c]
+        if store:
+            for c in range(9):
+                F_out[e, c] = F[c]
+                R_out[e, c] = R[c]
+        if beta > 0.0:
+            # beta * (mu (H + H^T) + lam tr(H) I) with H the velocity gradient
+            for i in range(3):
+                for k in range(3):
+                    h = 0.0
+                    for a in range(4):
+                        h += v[tets[e, a], i] * grad_n[e, a, k]
+                    F[3 * i + k] = h
+            trh = F[0] + F[4] + F[8]
+            for i in range(3):
+                for k in range(3):
+                    P[3 * i + k] += beta * mu[e] * (F[3 * i + k] + F[3 * k + i])
+                P[4 * i] += beta * lam[e] * trh
         V = volume[e]
         for a in range(4):
             node = tets[e, a]

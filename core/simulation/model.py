@@ -232,6 +232,7 @@ class Model:
         mass_dofs: (3N,) node masses repeated per dof, kg.
         free_index: (3N,) int64, dof -> index among free dofs, -1 for fixed dofs.
         scratch_slot: (3F,) int64 work array of the contact kernel (all -1 between calls).
+        has_body_force, has_supports: whether those arrays are non-zero (checked once).
     """
 
     mesh: TetMesh
@@ -252,6 +253,8 @@ class Model:
     mass_dofs: np.ndarray = field(repr=False, default=None)
     free_index: np.ndarray = field(repr=False, default=None)
     scratch_slot: np.ndarray = field(repr=False, default=None)
+    has_body_force: bool = False
+    has_supports: bool = False
     _factor: _BandedSPD | None = field(repr=False, default=None)
 
     @property
@@ -368,5 +371,7 @@ def build_model(
         mass_dofs=np.repeat(builder.node_mass, 3),
         free_index=free_index,
         scratch_slot=np.full(free_dofs.size, -1, dtype=np.int64),
+        has_body_force=bool(np.any(builder.body_force)),
+        has_supports=bool(np.any(builder.support_stiffness)),
         _factor=factor,
     )

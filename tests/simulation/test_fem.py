@@ -43,7 +43,7 @@ def test_fused_kernel_matches_numpy_reference(law):
     q[3] = 1.0
     F_out, R_out = np.empty((mesh.n_tets, 9)), np.empty((mesh.n_tets, 9))
     for _ in range(6):  # converge the warm-started rotations
-        f = kernels.element_forces(x, mesh.tets, el.grad_n, el.volume, mu, lam, q, 1, 0 if law == "corotational" else 1, F_out, R_out)
+        f = kernels.element_forces(x, mesh.tets, el.grad_n, el.volume, mu, lam, q, 1, 0 if law == "corotational" else 1, F_out, R_out, True, x[:1], 0.0)
     F = el.deformation_gradient(x)
     assert np.allclose(F_out.T, F, atol=1e-12)
     if law == "corotational":
@@ -102,7 +102,7 @@ def test_corotational_forces_vanish_under_rigid_motion():
     q[3] = 1.0
     F_out, R_out = np.empty((mesh.n_tets, 9)), np.empty((mesh.n_tets, 9))
     for _ in range(8):
-        f = kernels.element_forces(x, mesh.tets, model.elements.grad_n, model.elements.volume, model.mu, model.lam, q, 1, 0, F_out, R_out)
+        f = kernels.element_forces(x, mesh.tets, model.elements.grad_n, model.elements.volume, model.mu, model.lam, q, 1, 0, F_out, R_out, True, x[:1], 0.0)
     assert np.abs(f).max() < 1e-9
 
 
@@ -160,3 +160,18 @@ def test_compiled_contact_matches_numpy_reference():
         assert np.allclose(a.depth[order_a], b.depth[order_b])
         hits += len(a)
     assert hits > 0
+
+
+def test_stiffness_damping_in_the_kernel_equals_beta_K_v():
+    mesh = box_mesh(SIZE, (5, 3, 3))
+    model = build_model(mesh, 0.1, Material(5000.0, 0.44))
+    el = model.elements
+    v = np.random.default_rng(6).standard_normal(mesh.nodes.shape) * 0.01
+    q = np.zeros((4, mesh.n_tets))
+    q[3] = 1.0
+    F, R = np.empty((1, 9)), np.empty((1, 9))
+    args = (mesh.nodes, mesh.tets, el.grad_n, el.volume, model.mu, model.lam)
+    f0 = kernels.element_forces(*args, q.copy(), 1, 0, F, R, False, v, 0.0)
+    f1 = kernels.element_forces(*args, q.copy(), 1, 0, F, R, False, v, 0.1)
+    expected = -0.1 * (model.K @ v.ravel()).reshape(-1, 3)
+    assert np.allclose(f1 - f0, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
