@@ -45,3 +45,25 @@ def test_generate_command_is_deterministic(tmp_path):
     assert a == b
     # refusing to clobber an existing session is an error, not a crash
     assert main(["generate", "--preset", "small", "--seed", "5", "--out", str(tmp_path / "a")]) == 2
+
+
+def test_sweep_command_writes_the_papers_table(sample_session, tmp_path, capsys):
+    rc = main(["sweep", str(sample_session), "--youngs", "1e2,1e4", "--sequences", "seq03", "--serial", "--out", str(tmp_path)])
+    assert rc == 0
+    lines = (tmp_path / "sweep.csv").read_text().splitlines()
+    assert lines[0] == "youngs_modulus,poisson_ratio,sequence,mean_error,status"
+    assert [l.split(",")[0] for l in lines[1:]] == ["100", "10000"] and all(l.endswith(",ok") for l in lines[1:])
+    assert (tmp_path / "sweep.png").exists()
+    assert "best E" in capsys.readouterr().out
+    assert main(["sweep", str(sample_session), "--youngs", "abc", "--out", str(tmp_path)]) == 2
+
+
+def test_fit_command_says_when_E_cannot_be_identified(sample_session, tmp_path, capsys):
+    """The sample session is displacement-controlled, without gravity or force: E is not identifiable."""
+    rc = main(["fit", str(sample_session), "--serial", "--out", str(tmp_path)])
+    assert rc == 0
+    data = json.loads((tmp_path / "fit.json").read_text())
+    assert data["youngs_modulus"]["identifiable"] is False and data["youngs_modulus"]["value"] is None
+    assert data["youngs_modulus"]["reason"].startswith("flat profile")
+    assert set(data["errors"]) == {"train", "validation", "test"}
+    assert "not identifiable" in capsys.readouterr().out
