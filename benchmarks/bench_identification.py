@@ -21,6 +21,7 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--work", default="/tmp/tissuetwin-bench-id")
+    parser.add_argument("--sweep-only", action="store_true", help="skip the fits")
     args = parser.parse_args()
     work = Path(args.work)
     minute = work / "one-minute"
@@ -40,6 +41,8 @@ def main() -> None:
         sweep(prepared, PAPER_COARSE, executor=ex)
         t2 = time.perf_counter()
     print(f"  coarse sweep, 2-worker cluster:  {t2 - t1:6.1f} s (+{t1 - t0:.1f} s cluster start)")
+    if args.sweep_only:
+        return
 
     force = work / "small-force"
     if not (force / "session.json").exists():
