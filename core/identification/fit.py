@@ -29,7 +29,7 @@ units of its own noise.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -165,7 +165,7 @@ def _force_noise(prepared: PreparedSession, names) -> float:
         idx = prepared.rest_frames(n)
         if seq.force is None or idx.size == 0:
             continue
-        f = np.stack([np.interp(seq.frame_times[idx], seq.probe.t, seq.force[:, i]) for i in range(3)], axis=1)
+        f = seq.force_at(seq.frame_times[idx])
         vals.append(np.sum(f**2, axis=1))
     if not vals:
         return 1e-3

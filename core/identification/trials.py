@@ -84,7 +84,7 @@ def run_trial(prepared: PreparedSession, trial: Trial) -> TrialResult:
     sums = r.frame_errors * counts
     force_sq = None
     if seq.force is not None:
-        measured = np.stack([np.interp(seq.frame_times, seq.probe.t, seq.force[:, i]) for i in range(3)], axis=1)
+        measured = seq.force_at(seq.frame_times)
         force_sq = np.sum((r.simulation.contact_force - measured) ** 2, axis=1)
     return TrialResult(
         trial=trial,

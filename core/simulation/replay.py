@@ -124,6 +124,13 @@ class PreparedSequence:
     def n_points(self) -> int:
         return int(sum(c.shape[0] for c in self.clouds))
 
+    def force_at(self, times) -> np.ndarray | None:
+        """(M, 3) measured probe force (N, phantom frame) interpolated at ``times`` (s), or None."""
+        if self.force is None:
+            return None
+        times = np.asarray(times, dtype=np.float64)
+        return np.stack([np.interp(times, self.probe.t, self.force[:, i]) for i in range(3)], axis=1)
+
 
 @dataclass(frozen=True)
 class PreparedSession:

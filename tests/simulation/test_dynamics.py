@@ -1,7 +1,6 @@
 """Time stepping: probe contact, time-step convergence, divergence reporting."""
 
 import numpy as np
-import pytest
 
 from core.simulation import Material, ProbePath, SimulationConfig, build_model, box_mesh, simulate
 

@@ -3,7 +3,6 @@
 import json
 
 import numpy as np
-import pytest
 from scipy.spatial.transform import Rotation
 
 from core.io import read_session
