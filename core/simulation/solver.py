@@ -197,6 +197,12 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
         phi = np.maximum(_gap(contacts, xn, centre, radius), 0.0)
         fn = cfg.contact_stiffness * contacts.area * phi
         force = (fn[:, None] * contacts.normals).sum(0)
+        # friction: the implicit tangential force c_t (v_probe - v_point) . t of each tangent row
+        v_new = vg.reshape(-1, 3)
+        for nodes, weights, dirs, omega, _ in blocks[1:]:
+            v_pt = np.einsum("kj,kjd->kd", weights, v_new[nodes])
+            rel = dirs @ vp - np.einsum("kd,kd->k", dirs, v_pt)
+            force = force + ((omega / dt) * rel) @ dirs
     new = State(x=xn, v=vg.reshape(-1, 3), q=q, term_state=terms, t=state.t + dt)
     return new, StepInfo(contact_force=force, n_contacts=len(contacts))
 

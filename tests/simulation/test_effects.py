@@ -1,0 +1,144 @@
+"""Physics of each model option (effect kind of SESSION_FORMAT.md)."""
+
+import numpy as np
+import pytest
+
+from core.simulation import (
+    BaseCompliance,
+    Friction,
+    Gravity,
+    Inclusion,
+    KinematicOffset,
+    Material,
+    ProbePath,
+    ProbeRadius,
+    TimeOffset,
+    Viscoelasticity,
+    box_mesh,
+    build_model,
+    effect_from_dict,
+    simulate,
+    static_equilibrium,
+)
+
+SIZE = np.array([0.0687, 0.0393, 0.0358])
+MASS = 0.10401
+GRID = (9, 5, 5)
+
+
+def _centre_top(mesh):
+    top = mesh.top_nodes()
+    d = np.linalg.norm(mesh.nodes[top, :2] - SIZE[:2] / 2, axis=1)
+    return top[np.argmin(d)]
+
+
+def test_gravity_sag_scales_as_rho_g_H2_over_E():
+    mesh = box_mesh(SIZE, GRID)
+    node = _centre_top(mesh)
+
+    def sag(E, mass=MASS, g=9.81):
+        x = static_equilibrium(build_model(mesh, mass, Material(E), effects=[Gravity((0, 0, -g))]))[0].x
+        return mesh.nodes[node, 2] - x[node, 2]
+
+    s = sag(5000.0)
+    rho = MASS / np.prod(SIZE)
+    scale = rho * 9.81 * SIZE[2] ** 2 / 5000.0
+    assert 0.05 * scale < s < scale  # the right order: a fraction of rho g H^2 / E
+    assert sag(10000.0) == pytest.approx(s / 2, rel=0.03)  # ~ 1/E (small strain)
+    assert sag(5000.0, mass=2 * MASS) == pytest.approx(2 * s, rel=0.03)  # ~ rho
+    assert sag(5000.0, g=4.905) == pytest.approx(s / 2, rel=0.03)  # ~ g
+
+
+def _poke(xy, depth=0.005, T=3.0, hold=(0.8, 1.6)):
+    t = np.linspace(0.0, T, 301)
+    d = np.interp(t, [0, hold[0], hold[1], hold[1] + 0.3, T], [-0.002, depth, depth, -0.004, -0.004])
+    c = np.zeros((t.size, 3))
+    c[:, :2] = xy
+    c[:, 2] = SIZE[2] + 0.005 - d
+    return ProbePath(t, c)
+
+
+def test_stiff_inclusion_stiffens_only_the_local_response():
+    mesh = box_mesh(SIZE, GRID)
+    under = np.array([SIZE[0] / 2, SIZE[1] / 2])
+    far = np.array([0.012, 0.012])
+    inc = Inclusion(center=(SIZE[0] / 2, SIZE[1] / 2, SIZE[2] - 0.008), radius=0.01, stiffness_ratio=8.0)
+
+    def force(effects, xy):
+        r = simulate(build_model(mesh, MASS, Material(5000.0), effects=effects), _poke(xy), 0.005, [1.2])
+        return -r.contact_force[0, 2]
+
+    assert force([inc], under) > 1.3 * force([], under)
+    assert force([inc], far) == pytest.approx(force([], far), rel=0.1)
+
+
+def test_viscoelastic_dent_recovers_with_the_retardation_time():
+    """Standard linear solid: after release, creep back with tau_c = tau (1 + k)."""
+    mesh = box_mesh(SIZE, GRID)
+    node = _centre_top(mesh)
+    tau, k = 0.5, 1.0
+    times = np.linspace(2.0, 6.0, 81)  # release ends at 1.9 s
+    path = _poke(SIZE[:2] / 2, depth=0.006, T=6.0, hold=(0.5, 1.6))
+    ve = simulate(build_model(mesh, MASS, Material(5000.0), effects=[Viscoelasticity(tau, k)]), path, 0.005, times)
+    el = simulate(build_model(mesh, MASS, Material(5000.0)), path, 0.005, times)
+    dent_ve = mesh.nodes[node, 2] - ve.positions[:, node, 2]
+    dent_el = mesh.nodes[node, 2] - el.positions[:, node, 2]
+    assert dent_el[0] < 0.1 * dent_ve[0]  # the elastic solid has already recovered
+    # exponential fit on the viscoelastic recovery
+    good = dent_ve > 0.02 * dent_ve[0]
+    slope = np.polyfit(times[good], np.log(dent_ve[good]), 1)[0]
+    assert -1.0 / slope == pytest.approx(tau * (1 + k), rel=0.3)
+
+
+def test_friction_drags_the_surface_along_a_slide():
+    mesh = box_mesh(SIZE, GRID)
+    t = np.linspace(0.0, 3.0, 301)
+    c = np.zeros((t.size, 3))
+    c[:, 0] = np.interp(t, [0, 1, 2.5, 3], [0.025, 0.025, 0.04, 0.04])
+    c[:, 1] = SIZE[1] / 2
+    c[:, 2] = SIZE[2] + 0.005 - np.interp(t, [0, 0.8, 3], [-0.002, 0.004, 0.004])
+    path = ProbePath(t, c)
+    top = mesh.top_nodes()
+
+    def drag(effects):
+        r = simulate(build_model(mesh, MASS, Material(5000.0), effects=effects), path, 0.005, [2.4])
+        return (r.positions[0, top, 0] - mesh.nodes[top, 0]).mean(), r.contact_force[0]
+
+    dx0, f0 = drag([])
+    dx1, f1 = drag([Friction(0.8)])
+    assert dx1 > dx0 + 1e-5  # the surface follows the probe in +x
+    assert f1[0] > f0[0]  # and the probe pushes it along +x harder (friction is in the force)
+    # Coulomb: the tangential force stays within mu times the normal force (5 % slack
+    # for the lagged normal force of the regularised law)
+    assert np.hypot(f1[0] - f0[0], f1[1]) <= 0.8 * abs(f1[2]) * 1.05
+
+
+def test_base_compliance_lets_the_bottom_move_less_as_it_stiffens():
+    mesh = box_mesh(SIZE, GRID)
+    bottom = mesh.bottom_nodes()
+
+    def bottom_motion(effects):
+        r = simulate(build_model(mesh, MASS, Material(5000.0), effects=effects), _poke(SIZE[:2] / 2, depth=0.007), 0.005, [1.2])
+        return np.abs(r.positions[0, bottom] - mesh.nodes[bottom]).max()
+
+    assert bottom_motion([]) == 0.0
+    soft, stiff = bottom_motion([BaseCompliance(1e5)]), bottom_motion([BaseCompliance(1e6)])
+    assert soft > stiff > 0.0
+
+
+def test_input_side_effects_change_only_the_probe():
+    mesh = box_mesh(SIZE, GRID)
+    path = _poke(SIZE[:2] / 2)
+    times = np.array([0.5, 1.0])
+    base = simulate(build_model(mesh, MASS, Material(5000.0)), path, 0.005, times)
+    shifted = simulate(build_model(mesh, MASS, Material(5000.0), effects=[TimeOffset(0.1)]), path, 0.005, times)
+    np.testing.assert_allclose(shifted.probe_centres, path.at(times + 0.1))
+    moved = simulate(build_model(mesh, MASS, Material(5000.0), effects=[KinematicOffset((0.001, 0, -0.002))]), path, 0.005, times)
+    np.testing.assert_allclose(moved.probe_centres, base.probe_centres + [0.001, 0, -0.002])
+    bigger = simulate(build_model(mesh, MASS, Material(5000.0), effects=[ProbeRadius(0.006)]), path, 0.005, times)
+    assert bigger.probe_radius == 0.006 and -bigger.contact_force[1, 2] > -base.contact_force[1, 2]
+
+
+def test_effects_round_trip_through_their_dicts():
+    for e in [Gravity(), Inclusion(), Viscoelasticity(), Friction(), BaseCompliance(), ProbeRadius(), TimeOffset(), KinematicOffset()]:
+        assert effect_from_dict(e.to_dict()) == e
