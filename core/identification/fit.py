@@ -18,12 +18,14 @@ method needs the fewest simulations):
    is lower than the material's. The fit is repeated on a refined grid (2 n - 1 nodes
    per axis) near the coarse optimum and that value is reported, with the coarse one.
 
-Objective: ``J(E) = d(E) / d0 + f(E) / f0`` on the train sequences, where d is the
-mean point-to-mesh distance (m) and f the RMS of simulated minus measured probe force
-(N, only when the session has force columns). The weights are noise levels measured
-from the data: d0 is the noise floor (rest frames to rest mesh) and f0 the RMS force
-read while the probe is clear of the phantom (at least 1 mN). Each term is thus in
-units of its own noise.
+Objective: ``J(E) = d(E) / d0 + f(E) / f0`` on the train sequences, where d is the RMS
+signed vertical residual of points over the top face's interior (m; see
+:mod:`core.identification.residuals` for why not the paper's unsigned metric, which
+stays available as ``metric="paper"`` and is what the reported errors use) and f the
+RMS of simulated minus measured probe force (N, only when the session has force
+columns). The weights are noise levels measured from the data: d0 is the same residual
+on rest frames against the rest mesh and f0 the RMS force read while the probe is clear
+of the phantom (at least 1 mN). Each term is thus in units of its own noise.
 """
 
 from __future__ import annotations
@@ -85,6 +87,7 @@ class FitResult:
     weights: tuple[float, float | None]
     evaluations: int
     uses_force: bool
+    metric: str = "top"
 
     def to_json(self) -> dict:
         return {
@@ -106,7 +109,10 @@ class FitResult:
             },
             "errors": self.errors,
             "objective": {
-                "terms": ["point_to_mesh_distance / noise_floor"] + (["force_rms / force_noise"] if self.uses_force else []),
+                "terms": [
+                    "rms_signed_top_residual / its_noise" if self.metric == "top" else "point_to_mesh_distance / noise_floor"
+                ]
+                + (["force_rms / force_noise"] if self.uses_force else []),
                 "noise_floor_m": self.weights[0],
                 "force_noise_N": self.weights[1],
             },
@@ -120,7 +126,8 @@ class FitResult:
 class _Objective:
     """Evaluates and caches J(E) over the train sequences (one trial per sequence)."""
 
-    def __init__(self, prepared, names, base: Trial, executor: Executor, use_force: bool, d0, f0, progress):
+    def __init__(self, prepared, names, base: Trial, executor: Executor, use_force: bool, d0, f0, progress, metric="top"):
+        self.metric = metric
         self.prepared, self.names, self.base, self.executor = prepared, names, base, executor
         self.use_force, self.d0, self.f0 = use_force, d0, f0
         self.cache: dict[float, list[TrialResult]] = {}
@@ -144,7 +151,12 @@ class _Objective:
         if not all(r.ok for r in rs):
             return math.inf, math.nan, None
         w = weights or [np.ones(r.frame_counts.size) for r in rs]
-        d = sum((wi * r.frame_sums).sum() for wi, r in zip(w, rs)) / sum((wi * r.frame_counts).sum() for wi, r in zip(w, rs))
+        if self.metric == "top":  # RMS signed top-face residual (unbiased under noise)
+            d = math.sqrt(
+                sum((wi * r.frame_top_sq).sum() for wi, r in zip(w, rs)) / sum((wi * r.frame_top_counts).sum() for wi, r in zip(w, rs))
+            )
+        else:  # the paper's mean distance to the nearest super-sampled vertex
+            d = sum((wi * r.frame_sums).sum() for wi, r in zip(w, rs)) / sum((wi * r.frame_counts).sum() for wi, r in zip(w, rs))
         J = d / self.d0
         f = None
         if self.use_force:
@@ -156,6 +168,17 @@ class _Objective:
         E = float(10.0**logE)
         self.results([E])
         return self.terms(E)[0]
+
+
+def _top_noise(prepared: PreparedSession, names, grid) -> float:
+    """RMS signed top residual (m) of rest frames against the rest mesh: its noise level."""
+    from core.identification.residuals import top_residuals
+    from core.simulation import box_mesh
+
+    rest = box_mesh(prepared.size, grid).nodes
+    res = [top_residuals(prepared.sequences[n].clouds[i], rest, grid, prepared.size) for n in names for i in prepared.rest_frames(n)]
+    res = np.concatenate(res) if res else np.zeros(0)
+    return float(np.sqrt(np.mean(res**2))) if res.size > 10 else 1e-3
 
 
 def _force_noise(prepared: PreparedSession, names) -> float:
@@ -220,6 +243,7 @@ def fit_youngs_modulus(
     max_ratio: float = 3.0,
     n_boot: int = 400,
     seed: int = 0,
+    metric: str = "top",
     progress: Progress | None = None,
 ) -> FitResult:
     """Fit E on the ``train`` sequences; report validation and test errors.
@@ -235,6 +259,9 @@ def fit_youngs_modulus(
             profile counts as flat.
         max_ratio: widest interval (hi/lo) still called identifiable.
         n_boot: bootstrap replicates. seed: their seed.
+        metric: "top" (RMS signed vertical residual over the top face's interior; the
+            default, unbiased under noise) or "paper" (mean distance to the nearest
+            super-sampled vertex, which favours a slightly high top under ~1 mm noise).
         progress: ``progress(n_evaluated_E, message)``.
 
     Raises:
@@ -247,11 +274,11 @@ def fit_youngs_modulus(
         raise TissueTwinError("the session has no 'train' sequence to fit on")
     has_force = all(prepared.sequences[n].force is not None for n in names)
     use_force = has_force if use_force is None else (use_force and has_force)
-    d0 = prepared.noise_floor(base.grid)
+    d0 = _top_noise(prepared, names, base.grid) if metric == "top" else prepared.noise_floor(base.grid)
     if not np.isfinite(d0) or d0 <= 0:
         d0 = 1e-3
     f0 = _force_noise(prepared, names) if use_force else None
-    obj = _Objective(prepared, names, base, executor, use_force, d0, f0, progress)
+    obj = _Objective(prepared, names, base, executor, use_force, d0, f0, progress, metric)
 
     lo, hi = math.log10(bounds[0]), math.log10(bounds[1])
     coarse = [E for E in PAPER_COARSE if bounds[0] <= E <= bounds[1]] or [10 ** ((lo + hi) / 2)]
@@ -294,7 +321,7 @@ def fit_youngs_modulus(
         span = Es[np.isfinite(J)]
         reason = (
             f"flat profile: a tenfold change of E changes the train objective by only "
-            f"{100 * max(rise_lo, 0):.1f} % / {100 * max(rise_hi, 0):.1f} % (error {d_star * 1e3:.3f} mm); "
+            f"{100 * max(rise_lo, 0):.1f} % / {100 * max(rise_hi, 0):.1f} % ({'RMS top residual' if metric == 'top' else 'error'} {d_star * 1e3:.3f} mm); "
             f"bootstrap argmin ranges {lo_i:.3g}-{hi_i:.3g} Pa over {span.min():.3g}-{span.max():.3g} Pa"
             + ("" if use_force else "; without force data or gravity a displacement-controlled probe says almost nothing about E")
         )
@@ -302,7 +329,7 @@ def fit_youngs_modulus(
     refined = refined_grid(base.grid)
     refined_value = None
     if identifiable and refine_mesh:
-        fine = _Objective(prepared, names, replace(base, grid=refined), executor, use_force, prepared.noise_floor(refined), f0, progress)
+        fine = _Objective(prepared, names, replace(base, grid=refined), executor, use_force, d0, f0, progress, metric)
         r2 = minimize_scalar(fine, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded", options={"xatol": 0.004})
         refined_value = float(10.0**r2.x)
         obj.evaluations += fine.evaluations
@@ -314,8 +341,10 @@ def fit_youngs_modulus(
         if not ns:
             continue
         if role == "train":
-            errors[role] = float(d_star)
-            continue
+            rs = obj.cache[float(10.0**res.x)] if float(10.0**res.x) in obj.cache else None
+            if rs and all(r.ok for r in rs):
+                errors[role] = float(sum(r.frame_sums.sum() for r in rs) / sum(r.frame_counts.sum() for r in rs))
+                continue
         out = executor.map(run_trial, prepared, [replace(base, sequence=n, youngs_modulus=E_star) for n in ns])
         obj.evaluations += len(ns)
         ok = [r for r in out if r.ok]
@@ -337,4 +366,5 @@ def fit_youngs_modulus(
         weights=(float(d0), f0),
         evaluations=obj.evaluations,
         uses_force=use_force,
+        metric=metric,
     )

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from core.identification.residuals import top_residuals
 from core.simulation import SimulationConfig, effect_from_dict
 from core.simulation.replay import PreparedSession, ReplayConfig, replay_sequence
 
@@ -58,6 +59,8 @@ class TrialResult:
         frame_counts: (F,) points per frame.
         frame_force_sq: (F,) squared norm of simulated minus measured probe force, N^2,
             or None without force data.
+        frame_top_sq: (F,) sum of squared signed top-face residuals, m^2 (see
+            :func:`core.identification.residuals.top_residuals`); frame_top_counts: (F,).
         wall_time: s.
     """
 
@@ -69,6 +72,8 @@ class TrialResult:
     frame_counts: np.ndarray
     frame_force_sq: np.ndarray | None
     wall_time: float
+    frame_top_sq: np.ndarray | None = None
+    frame_top_counts: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -86,7 +91,16 @@ def run_trial(prepared: PreparedSession, trial: Trial) -> TrialResult:
     if seq.force is not None:
         measured = seq.force_at(seq.frame_times)
         force_sq = np.sum((r.simulation.contact_force - measured) ** 2, axis=1)
+    top_sq = np.full(counts.size, np.nan)
+    top_n = np.zeros(counts.size, dtype=np.int64)
+    for f, pts in enumerate(seq.clouds):
+        if not np.all(np.isfinite(r.simulation.positions[f])):
+            continue  # diverged: NaN sum, as the paper's "N/A"
+        res = top_residuals(pts, r.simulation.positions[f], trial.grid, prepared.size)
+        top_sq[f], top_n[f] = float(np.sum(res**2)), res.size
     return TrialResult(
+        frame_top_sq=top_sq,
+        frame_top_counts=top_n,
         trial=trial,
         status=r.status,
         message=r.message,
