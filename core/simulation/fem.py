@@ -25,7 +25,6 @@ __all__ = [
     "build_elements",
     "lame_parameters",
     "linear_stiffness",
-    "polar_rotation",
     "pk1_corotational",
     "pk1_stable_neo_hookean",
     "corotated_strain",
@@ -149,68 +148,6 @@ def linear_stiffness(elements: ElementData, mu: np.ndarray, lam: np.ndarray) -> 
     )
     K = elements.GT @ D @ elements.G
     return ((K + K.T) * 0.5).tocsr()
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    x, y, z, w = q
-    xx, yy, zz = x * x, y * y, z * z
-    xy, xz, yz = x * y, x * z, y * z
-    wx, wy, wz = w * x, w * y, w * z
-    return np.stack(
-        [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
-        ]
-    )
-
-
-def polar_rotation(F: np.ndarray, q: np.ndarray, iterations: int = 3) -> tuple[np.ndarray, np.ndarray]:
-    """Rotational part of F by Müller et al. 2016 ("A robust method to extract the
-    rotational part of deformations", MIG '16), warm-started from quaternions q.
-
-    Args:
-        F: (9, E) deformation gradients (component-major, row-major 3x3).
-        q: (4, E) quaternions (x, y, z, w) from the previous call (identity at rest).
-        iterations: fixed-point iterations; 2-3 suffice when warm-started each step.
-
-    Returns:
-        (R, q): R (9, E) rotations, q (4, E) the updated quaternions. Robust to
-        inverted elements (no SVD sign fixing needed).
-    """
-    q = q.copy()
-    cols = [(F[j], F[3 + j], F[6 + j]) for j in range(3)]
-    for _ in range(iterations):
-        R = _quat_to_matrix(q)
-        num = np.zeros((3, F.shape[1]))
-        den = np.zeros(F.shape[1])
-        for j in range(3):
-            r = (R[j], R[3 + j], R[6 + j])
-            c = cols[j]
-            num[0] += r[1] * c[2] - r[2] * c[1]
-            num[1] += r[2] * c[0] - r[0] * c[2]
-            num[2] += r[0] * c[1] - r[1] * c[0]
-            den += r[0] * c[0] + r[1] * c[1] + r[2] * c[2]
-        omega = num / (np.abs(den) + 1e-9)
-        angle = np.sqrt((omega * omega).sum(axis=0))
-        small = angle < 1e-12
-        axis = omega / np.where(small, 1.0, angle)
-        half = 0.5 * np.where(small, 0.0, angle)
-        s = np.sin(half)
-        dq = np.stack([axis[0] * s, axis[1] * s, axis[2] * s, np.cos(half)])
-        # q <- dq * q (Hamilton product, x y z w)
-        x1, y1, z1, w1 = dq
-        x2, y2, z2, w2 = q
-        q = np.stack(
-            [
-                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            ]
-        )
-        q /= np.sqrt((q * q).sum(axis=0))
-    return _quat_to_matrix(q), q
 
 
 def _trace_rt_f(R: np.ndarray, F: np.ndarray) -> np.ndarray:
