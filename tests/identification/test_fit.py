@@ -50,7 +50,7 @@ def test_force_columns_pin_down_youngs_modulus(force_session):
 
 def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
     """With gravity the sag (~rho g H^2 / E, ~1 mm here) carries E. The fit uses the
-    truth's law (measured 5032 Pa); the paper's corotational law gives ~5.3 kPa (+6 %).
+    truth's law (measured 5064 Pa, interval 5032-5129 Pa); the corotational law gives ~5.3 kPa.
     Known gap (issue 3 stays open): the 95 % interval comes from a bootstrap over frames
     and sequences only, so session-wide systematics (calibration) are not in it and it
     can miss the truth by a fraction of a percent; it is not asserted to contain it."""
