@@ -282,7 +282,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sample", default=str(Path("..") / "shared" / "sample-session"), help="a session from another tool to replay too")
     _add_model_options(p)
     p.set_defaults(func=cmd_demo)
+    for register in _command_groups():
+        register(sub)
     return parser
+
+
+def _command_groups() -> list:
+    """Subcommands that live in their own modules; each module exposes ``register(subparsers)``."""
+    return []
 
 
 def main(argv: list[str] | None = None) -> int:
