@@ -268,7 +268,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_execution_options(p)
     p.set_defaults(func=cmd_sweep)
 
-    p = sub.add_parser("fit", help="fit Young's modulus with a 95 % interval, or say it cannot be identified")
+    p = sub.add_parser("fit", help="fit Young's modulus with a 95 %% interval, or say it cannot be identified")
     p.add_argument("session")
     p.add_argument("--out", required=True)
     p.add_argument("--force", choices=("auto", "yes", "no"), default="auto", help="use the force columns in the objective (default: when present)")

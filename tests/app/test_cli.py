@@ -3,8 +3,10 @@
 import json
 import shutil
 
+import pytest
 
-from app.cli import main
+
+from app.cli import build_parser, main
 
 
 def test_replay_command_writes_results_and_prints_a_table(sample_session, tmp_path, capsys):
@@ -66,3 +68,19 @@ def test_fit_command_says_when_E_cannot_be_identified(sample_session, tmp_path, 
     assert data["youngs_modulus"]["reason"].startswith("flat profile")
     assert set(data["errors"]) == {"train", "validation", "test"}
     assert "not identifiable" in capsys.readouterr().out
+
+
+def test_help_lists_every_command_and_each_command_has_help(capsys):
+    """``--help`` formats every help string (a bare '%' once broke it)."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    for name in sub.choices:
+        with pytest.raises(SystemExit) as exc:
+            main([name, "--help"])
+        assert exc.value.code == 0
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    for name in sub.choices:
+        assert name in out
