@@ -9,7 +9,11 @@ method needs the fewest simulations):
    best coarse value (scipy ``minimize_scalar(method="bounded")``);
 3. a profile of the objective on a log grid around the optimum; a 95 % interval from
    a block bootstrap over frames (1 s blocks) and sequences of the profile's argmin
-   (Efron & Tibshirani 1993, Ch. 8; every replicate reuses the simulated frames);
+   (Efron & Tibshirani 1993, Ch. 8; every replicate reuses the simulated frames),
+   widened by the robot calibration's uncertainty, which the bootstrap cannot see
+   because it is common to every frame: the fit is repeated near the optimum with the
+   probe one standard error (``Calibration.probe_sigma``, from the corner touches)
+   higher, and that shift of log E is added in quadrature (delta method, 1.96 sigma);
 4. identifiability: the profile must rise by at least ``min_rise`` (relative) within a
    decade on both sides and the interval must span less than ``max_ratio``. A
    displacement-controlled probe without gravity or force data fails the first test:
@@ -88,6 +92,10 @@ class FitResult:
     evaluations: int
     uses_force: bool
     metric: str = "top"
+    law: str = "corotational"
+    bootstrap_interval: tuple[float, float] | None = None
+    probe_sigma: float = float("nan")
+    calibration_shift: float = 0.0
 
     def to_json(self) -> dict:
         return {
@@ -100,6 +108,15 @@ class FitResult:
                 "refined_value": None
                 if self.refined_value is None
                 else {"grid": list(self.refined), "value": self.refined_value},
+                "interval_sources": {
+                    "bootstrap_frames_sequences": list(self.bootstrap_interval) if self.bootstrap_interval else None,
+                    "probe_height_sigma_m": None if not math.isfinite(self.probe_sigma) else self.probe_sigma,
+                    "relative_shift_per_probe_sigma": self.calibration_shift,
+                },
+                "law": self.law,
+                "law_note": "E is the modulus of this material law; the paper's corotational law read "
+                "~18 % higher than stable neo-Hookean on force data and ~6 % on gravity data with "
+                "3-10 mm indentations (model-form bias, not in the interval)",
             },
             "poisson_ratio": {
                 "value": self.poisson_ratio,
@@ -231,6 +248,20 @@ def _bootstrap(obj: _Objective, Es: np.ndarray, n_boot: int, seed: int, block: f
     return out
 
 
+def _calibration_shift(obj: _Objective, E_star: float, sigma: float) -> tuple[float, int]:
+    """|log10 shift| of the optimum when the probe sits ``sigma`` (m) higher than calibrated,
+    and the replays it took. Five points within 0.15 decade of ``E_star``, parabolic argmin."""
+    offset = {"kind": "kinematic_offset", "offset": [0.0, 0.0, float(sigma)]}
+    base = replace(obj.base, effects=tuple(obj.base.effects) + (offset,))
+    pert = _Objective(obj.prepared, obj.names, base, obj.executor, obj.use_force, obj.d0, obj.f0, None, obj.metric)
+    Es = E_star * 10.0 ** np.array([-0.15, -0.05, 0.0, 0.05, 0.15])
+    pert.results(Es)
+    J = np.array([pert.terms(E)[0] for E in Es])
+    if not np.isfinite(J).any():
+        return 0.0, pert.evaluations
+    return abs(math.log10(_argmin_log(Es, J) / E_star)), pert.evaluations
+
+
 def fit_youngs_modulus(
     prepared: PreparedSession,
     *,
@@ -300,7 +331,8 @@ def fit_youngs_modulus(
     J_star = obj.terms(E_star)[0]
 
     boot = _bootstrap(obj, Es, n_boot, seed, block=1.0)
-    lo_i, hi_i = (float(v) for v in np.percentile(boot, [2.5, 97.5]))
+    lo_b, hi_b = (float(v) for v in np.percentile(boot, [2.5, 97.5]))
+    lo_i, hi_i = lo_b, hi_b
 
     def rise(side: int) -> float:
         Eside = E_star * 10.0**side
@@ -311,11 +343,25 @@ def fit_youngs_modulus(
 
     rise_lo, rise_hi = rise(-1), rise(+1)
     identifiable = rise_lo >= min_rise and rise_hi >= min_rise and hi_i / lo_i <= max_ratio
+    probe_sigma = float(prepared.calibration.probe_sigma)
+    shift = 0.0
+    if identifiable and math.isfinite(probe_sigma) and probe_sigma > 0:
+        shift, n_cal = _calibration_shift(obj, E_star, probe_sigma)
+        obj.evaluations += n_cal
+        widen = (1.96 * shift) ** 2
+        lo_i = E_star / 10.0 ** math.sqrt(math.log10(E_star / lo_b) ** 2 + widen) if lo_b < E_star else lo_b
+        hi_i = E_star * 10.0 ** math.sqrt(math.log10(hi_b / E_star) ** 2 + widen) if hi_b > E_star else hi_b
+        identifiable = hi_i / lo_i <= max_ratio
     d_star = obj.terms(E_star)[1]
     if identifiable:
         reason = (
             f"profile rises {100 * rise_lo:.0f} % / {100 * rise_hi:.0f} % a decade below / above the optimum; "
             f"95 % interval spans a factor {hi_i / lo_i:.2f}"
+        )
+    elif rise_lo >= min_rise and rise_hi >= min_rise:
+        reason = (
+            f"the profile has a minimum, but the 95 % interval {lo_i:.3g}-{hi_i:.3g} Pa spans a factor "
+            f"{hi_i / lo_i:.2f} (> {max_ratio:g}): the data and the calibration cannot pin E down"
         )
     else:
         span = Es[np.isfinite(J)]
@@ -367,4 +413,8 @@ def fit_youngs_modulus(
         evaluations=obj.evaluations,
         uses_force=use_force,
         metric=metric,
+        law=base.law,
+        bootstrap_interval=(lo_b * scale, hi_b * scale) if identifiable else None,
+        probe_sigma=probe_sigma,
+        calibration_shift=float(10.0**shift - 1.0),
     )

@@ -83,6 +83,11 @@ class Calibration:
         robot_rms: corner-touch residual RMS, m.
         camera_rms: ICP inlier RMS, m.
         camera_fitness: ICP inlier fraction.
+        probe_sigma: standard error of the calibrated probe's vertical position over the
+            top face, m, from the corner-touch residuals: per-axis touch noise
+            ``sigma^2 = sum(r^2) / (3 N - 6)`` (6 rigid degrees of freedom), propagated
+            through the Kabsch fit as ``sigma^2 / N`` at the touches' centroid plus the
+            tilt term, 1/3 of that averaged over the face. NaN when unknown.
     """
 
     T_phantom_robot: np.ndarray
@@ -90,6 +95,7 @@ class Calibration:
     robot_rms: float
     camera_rms: float
     camera_fitness: float
+    probe_sigma: float = float("nan")
 
     def to_json(self) -> dict:
         return {
@@ -98,6 +104,7 @@ class Calibration:
             "robot_rms": float(self.robot_rms),
             "camera_rms": float(self.camera_rms),
             "camera_fitness": float(self.camera_fitness),
+            "probe_sigma": float(self.probe_sigma),
         }
 
 
@@ -268,7 +275,17 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
         robot_rms=float(robot.rms),
         camera_rms=float(camera.rms),
         camera_fitness=float(camera.fitness),
+        probe_sigma=_probe_sigma(robot.residuals),
     )
+
+
+def _probe_sigma(residuals: np.ndarray) -> float:
+    """Standard error (m) of the calibrated probe height (see ``Calibration.probe_sigma``)."""
+    n = int(np.asarray(residuals).size)
+    if n < 3:
+        return float("nan")
+    sigma2 = float(np.sum(np.asarray(residuals) ** 2)) / max(3 * n - 6, 1)
+    return float(np.sqrt(sigma2 / n * 4.0 / 3.0))
 
 
 def _prepare_sequence(session: Session, name: str, cal: Calibration, config: ReplayConfig) -> PreparedSequence:
