@@ -1,0 +1,54 @@
+"""/api/viewer: where the 3D viewer is, what it shows, and remote control from the dashboard."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from app.server.api.deps import DB, ViewerDep
+from app.server.api.schemas import ViewerFrame, ViewerIcp, ViewerShow
+from app.server.errors import Conflict, Invalid
+from app.server.services import jobs as job_svc
+from app.server.services import sessions as session_svc
+
+router = APIRouter(prefix="/api/viewer", tags=["viewer"])
+
+
+def _need(viewer):
+    if viewer is None:
+        raise Conflict("the viewer is not running (serve without --no-viewer)")
+    return viewer
+
+
+@router.get("")
+def viewer_state(viewer: ViewerDep):
+    """Port, what is shown, frame and time, picks; ``{"enabled": false}`` without a viewer."""
+    if viewer is None:
+        return {"enabled": False}
+    return {"enabled": True, **viewer.state()}
+
+
+@router.post("/show")
+def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
+    """Load a finished replay job's run (once) and show a sequence."""
+    viewer = _need(viewer)
+    job = job_svc.get_job(db, body.job_id)
+    if job.type != "replay" or job.status != "done":
+        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replays")
+    viewer.show_run(job.id, body.sequence)
+    return viewer.state()
+
+
+@router.post("/frame")
+def set_frame(body: ViewerFrame, viewer: ViewerDep):
+    viewer = _need(viewer)
+    viewer.set_frame(body.frame)
+    return viewer.state()
+
+
+@router.post("/icp")
+def start_icp(body: ViewerIcp, db: DB, viewer: ViewerDep):
+    """Open the picking mode of the viewer on a session's reference cloud."""
+    viewer = _need(viewer)
+    session_svc.get_session(db, body.session_id)
+    viewer.start_icp(body.session_id)
+    return viewer.state()

@@ -1,0 +1,242 @@
+"""Run jobs on Dask and keep the database in step with them.
+
+* Submission: one Dask task per job (:func:`execute_job`), on a local cluster of worker
+  processes (default) or an existing scheduler. Jobs that run trials (sweep, fit) submit
+  them to the same cluster from inside the task (``worker_client``).
+* Progress: the task puts ``(kind, payload)`` on a ``distributed.Queue``; one monitor
+  thread per job drains it into the job's row (progress, message, log).
+* Cancel: the server sets a ``distributed.Event``; the job's next progress report raises
+  :class:`JobCancelled`. A job that has not started is cancelled on the scheduler.
+* Worker crash: the scheduler would re-run a task whose worker died. The task sets a
+  ``started`` event first; a re-run that finds it set fails at once with
+  :class:`WorkerCrashed`, so a crashing job fails alone while trial tasks of other jobs
+  that were on the dead worker are retried by Dask as usual.
+* Restart: a stopping server leaves its jobs ``interrupted`` (also done at start-up for
+  jobs a killed server left behind, :func:`app.server.db.mark_interrupted`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+import traceback as tb_module
+import uuid
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import sessionmaker
+
+from app.server import db as dbm
+from app.server.jobs.context import DaskChannel, JobCancelled, JobContext, WorkerCrashed
+from app.server.jobs.registry import Registry
+from app.server.settings import Settings
+
+__all__ = ["execute_job", "JobRunner"]
+
+log = logging.getLogger(__name__)
+
+
+def execute_job(token: str, job_id: int, run, params_cls, params: dict, artifact_dir: str,
+                session_path: str | None, picked, interval: float) -> dict:
+    """The Dask task of one job: validate the parameters, run, return the summary.
+
+    Raises:
+        WorkerCrashed: this is a re-run after the worker running it died.
+        JobCancelled: the user cancelled it.
+        Exception: whatever the job raised (domain errors carry the reason).
+    """
+    import numpy as np
+
+    channel = DaskChannel(token)
+    if channel.started_event.is_set():
+        raise WorkerCrashed("the worker running this job died (process crash or out of memory); not retried")
+    channel.started_event.set()
+    channel.send("started", time.time())
+    ctx = JobContext(
+        job_id=job_id, artifact_dir=Path(artifact_dir), channel=channel,
+        session_path=Path(session_path) if session_path else None,
+        picked=None if picked is None else (np.asarray(picked[0], float), np.asarray(picked[1], float)),
+        interval=interval,
+    )
+    ctx.artifact_dir.mkdir(parents=True, exist_ok=True)
+    ctx.check_cancelled()
+    return run(params_cls.model_validate(params), ctx)
+
+
+def _append(text: str, line: str) -> str:
+    stamp = time.strftime("%H:%M:%S")
+    return f"{text}{stamp} {line}\n"
+
+
+class JobRunner:
+    """Owns the Dask client and one monitor thread per active job.
+
+    Args:
+        settings: scheduler address / local workers, progress interval.
+        factory: SQLAlchemy session factory.
+        registry: the job types.
+    """
+
+    def __init__(self, settings: Settings, factory: sessionmaker, registry: Registry):
+        self.settings = settings
+        self.factory = factory
+        self.registry = registry
+        self.client = None
+        self.cluster = None
+        self._futures: dict[int, Any] = {}
+        self._tokens: dict[int, str] = {}
+        self._threads: dict[int, threading.Thread] = {}
+        self._closing = threading.Event()
+        self._lock = threading.Lock()
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Connect to the scheduler, or start a local cluster of worker processes."""
+        import dask
+        from distributed import Client, LocalCluster
+
+        address = self.settings.scheduler
+        if address:
+            self.client = Client(address)
+            return
+        # non-daemonic workers: jobs may start processes (the virtual lab's simulation pool)
+        with dask.config.set({"distributed.worker.daemon": False}):
+            self.cluster = LocalCluster(
+                n_workers=self.settings.workers, threads_per_worker=1, processes=True,
+                dashboard_address=None, silence_logs=logging.ERROR,
+                env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"},
+            )
+        self.client = Client(self.cluster)
+
+    def close(self) -> None:
+        """Stop monitoring, mark unfinished jobs interrupted, close the client and cluster."""
+        self._closing.set()
+        for t in list(self._threads.values()):
+            t.join(timeout=5)
+        dbm.mark_interrupted(self.factory)
+        if self.client is not None:
+            self.client.close()
+        if self.cluster is not None:
+            self.cluster.close()
+
+    # ------------------------------------------------------------------ jobs
+    def submit(self, job: dbm.JobRecord, session_path: str | None, picked) -> None:
+        """Send a queued job (already in the database) to the cluster and monitor it."""
+        job_type = self.registry.get(job.type)
+        assert job_type is not None, job.type
+        token = f"tt-{job.id}-{uuid.uuid4().hex[:12]}"
+        future = self.client.submit(
+            execute_job, token, job.id, job_type.run, job_type.params, job.params, job.artifact_dir,
+            session_path, picked, self.settings.progress_interval, key=f"{token}-job", pure=False, retries=0,
+        )
+        with self._lock:
+            self._futures[job.id] = future
+            self._tokens[job.id] = token
+            thread = threading.Thread(target=self._monitor, args=(job.id, token, future), name=f"job-{job.id}", daemon=True)
+            self._threads[job.id] = thread
+        thread.start()
+
+    def cancel(self, job_id: int) -> None:
+        """Ask a job to stop: set its cancel event; cancel it on the scheduler if not started."""
+        from distributed import Event
+
+        with self._lock:
+            token, future = self._tokens.get(job_id), self._futures.get(job_id)
+        if token is None:
+            return
+        Event(f"{token}-cancel", client=self.client).set()
+        with self.factory() as db:
+            job = db.get(dbm.JobRecord, job_id)
+            started = job is not None and job.status == dbm.RUNNING
+        if not started and future is not None:
+            future.cancel()
+
+    def active(self) -> list[int]:
+        with self._lock:
+            return [k for k, t in self._threads.items() if t.is_alive()]
+
+    # ------------------------------------------------------------------ monitoring
+    def _apply(self, job_id: int, items: list) -> None:
+        if not items:
+            return
+        with self.factory.begin() as db:
+            job = db.get(dbm.JobRecord, job_id)
+            if job is None:
+                return
+            for kind, payload in items:
+                if kind == "started":
+                    if job.status == dbm.QUEUED:
+                        job.status = dbm.RUNNING
+                        job.started_at = dbm.utcnow()
+                        job.log = _append(job.log, "started")
+                elif kind == "progress":
+                    job.progress, job.message = float(payload[0]), str(payload[1])
+                elif kind == "log":
+                    job.log = _append(job.log, str(payload))
+
+    def _finish(self, job_id: int, future) -> None:
+        status = future.status
+        result, error, trace = None, None, None
+        if status == "finished":
+            try:
+                result = future.result()
+                final = dbm.DONE
+            except Exception as exc:  # a result that cannot be unpickled
+                final, error, trace = dbm.FAILED, f"{type(exc).__name__}: {exc}", tb_module.format_exc()
+        elif status == "cancelled":
+            final, error = dbm.CANCELLED, "cancelled by the user before it started"
+        else:
+            exc = future.exception()
+            trace = "".join(tb_module.format_list(tb_module.extract_tb(future.traceback()))) if future.traceback() else None
+            name = type(exc).__name__
+            if isinstance(exc, JobCancelled) or name == "JobCancelled":
+                final, error = dbm.CANCELLED, str(exc) or "cancelled by the user"
+            elif isinstance(exc, WorkerCrashed) or name in ("KilledWorker", "WorkerCrashed"):
+                final, error = dbm.FAILED, f"worker crashed: {exc}"
+            else:
+                final, error = dbm.FAILED, f"{name}: {exc}"
+            if trace:
+                trace = f"{trace}{name}: {exc}\n"
+        register = (result or {}).pop("register_session", None) if isinstance(result, dict) else None
+        with self.factory.begin() as db:
+            job = db.get(dbm.JobRecord, job_id)
+            if job is None:
+                return
+            job.status, job.result, job.error, job.traceback = final, result, error, trace
+            job.finished_at = dbm.utcnow()
+            if final == dbm.DONE:
+                job.progress, job.message = 1.0, "done"
+            job.log = _append(job.log, final + (f": {error}" if error else ""))
+            if register:
+                path = str(Path(register["path"]).resolve())
+                rec = dbm.SessionRecord(name=register["name"], path=path, source="generated")
+                db.add(rec)
+                db.flush()
+                job.result = {**(result or {}), "session_id": rec.id}
+
+    def _monitor(self, job_id: int, token: str, future) -> None:
+        from distributed import Queue
+
+        queue = Queue(f"{token}-reports", client=self.client)
+        try:
+            while not self._closing.is_set():
+                done = future.done()
+                items = queue.get(batch=True)
+                self._apply(job_id, items)
+                if done:
+                    self._finish(job_id, future)
+                    break
+                time.sleep(self.settings.progress_interval)
+        except Exception:  # noqa: BLE001 - a monitor must never take the server down
+            log.exception("monitor of job %s failed", job_id)
+            if not self._closing.is_set():
+                with self.factory.begin() as db:
+                    job = db.get(dbm.JobRecord, job_id)
+                    if job is not None and job.status in dbm.ACTIVE:
+                        job.status, job.error, job.traceback = dbm.FAILED, "lost track of the job", tb_module.format_exc()
+                        job.finished_at = dbm.utcnow()
+        finally:
+            with self._lock:
+                self._futures.pop(job_id, None)
+                self._tokens.pop(job_id, None)

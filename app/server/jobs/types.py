@@ -1,0 +1,192 @@
+"""The job types the workbench runs: each is a parameter model and a function calling ``core``.
+
+Functions run on a Dask worker with a :class:`JobContext`; they import ``core`` inside
+(workers import this module once). Adding a type = one model, one function, one
+:class:`JobType` in :func:`default_registry`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from app.server.jobs.context import JobContext
+from app.server.jobs.registry import JobType, Registry
+
+__all__ = ["GenerateParams", "ReplayParams", "SweepParams", "FitParams", "default_registry"]
+
+Grid = Annotated[list[Annotated[int, Field(ge=2, le=64)]], Field(min_length=3, max_length=3)]
+
+
+def _check_effects(effects: list[dict]) -> list[dict]:
+    from core.errors import TissueTwinError
+    from core.simulation import effect_from_dict
+
+    for e in effects:
+        try:
+            effect_from_dict(dict(e))
+        except TissueTwinError as exc:  # pydantic turns ValueError into a 422 field error
+            raise ValueError(str(exc)) from exc
+    return effects
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class GenerateParams(_Strict):
+    """Write a synthetic session with the virtual lab (``core.lab.generate_session``)."""
+
+    name: str = Field("lab-session", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="name of the new session")
+    preset: Literal["small", "demo", "paper"] = "small"
+    seed: int = Field(0, ge=0)
+    effects: list[dict] = Field(default_factory=list, description='e.g. [{"kind": "gravity", "g": [0, 0, -9.81]}]')
+    with_force: bool = False
+
+    _effects = field_validator("effects")(_check_effects)
+
+
+class _ModelParams(_Strict):
+    session_id: int = Field(description="id of a registered session")
+    poisson_ratio: float = Field(0.44, gt=0.0, lt=0.5)
+    grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="FEM node grid nx, ny, nz")
+    effects: list[dict] = Field(default_factory=list, description="model extensions (SESSION_FORMAT effect kinds)")
+    sequences: list[str] | None = Field(None, description="sequence names (default: all, or train for sweeps)")
+
+    _effects = field_validator("effects")(_check_effects)
+
+
+class ReplayParams(_ModelParams):
+    """Replay a session and measure the paper's error (``core.simulation.replay``)."""
+
+    youngs_modulus: float = Field(5000.0, gt=0, le=1e9, description="E, Pa")
+
+
+class SweepParams(_ModelParams):
+    """The paper's grid search over E (Tables 1-2): explicit values, or a log range."""
+
+    youngs: list[Annotated[float, Field(gt=0, le=1e9)]] | None = Field(None, description="E values, Pa")
+    e_min: float = Field(1e1, gt=0, le=1e9, description="range start, Pa (when youngs is not given)")
+    e_max: float = Field(1e6, gt=0, le=1e9, description="range end, Pa")
+    per_decade: int = Field(1, ge=1, le=10, description="log-spaced values per decade")
+    refine: bool = Field(False, description="add the paper's 2.5/5/7.5 fine grid around the best value")
+
+    @model_validator(mode="after")
+    def _range(self):
+        if self.youngs is None and self.e_max < self.e_min:
+            raise ValueError(f"e_max ({self.e_max:g} Pa) must be >= e_min ({self.e_min:g} Pa)")
+        if len(self.values()) > 60:
+            raise ValueError(f"at most 60 values of E per sweep, got {len(self.values())}")
+        return self
+
+    def values(self) -> list[float]:
+        """The swept E values, Pa."""
+        if self.youngs:
+            return sorted({float(E) for E in self.youngs})
+        n = max(int(round(math.log10(self.e_max / self.e_min) * self.per_decade)), 0)
+        return [float(f"{self.e_min * 10 ** (i / self.per_decade):.6g}") for i in range(n + 1)]
+
+
+class FitParams(_ModelParams):
+    """Fit E with a 95 % interval, or report it is not identifiable (``fit_youngs_modulus``)."""
+
+    use_force: Literal["auto", "yes", "no"] = "auto"
+    refine_mesh: bool = True
+
+
+def _replay_config(p: _ModelParams, youngs: float = 5000.0):
+    from core.simulation import effect_from_dict
+    from core.simulation.replay import ReplayConfig
+
+    return ReplayConfig(
+        youngs_modulus=youngs, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid),
+        effects=tuple(effect_from_dict(dict(e)) for e in p.effects),
+        sequences=tuple(p.sequences) if p.sequences else None,
+    )
+
+
+def _base_trial(p: _ModelParams):
+    from core.identification import Trial
+
+    return Trial(sequence="", youngs_modulus=1.0, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid),
+                 effects=tuple(dict(e) for e in p.effects))
+
+
+def _prepare(p: _ModelParams, ctx: JobContext, lo: float, hi: float, youngs: float = 5000.0):
+    from core.simulation.replay import prepare_session
+
+    return prepare_session(ctx.session_path, _replay_config(p, youngs), picked=ctx.picked, callback=ctx.scaled(lo, hi))
+
+
+def run_generate(p: GenerateParams, ctx: JobContext) -> dict:
+    from core.lab import generate_session
+
+    out = ctx.artifact_dir / p.name
+    generate_session(out, preset=p.preset, seed=p.seed, effects=p.effects, with_force=p.with_force,
+                     callback=ctx.scaled(0.0, 1.0))
+    return {"session": str(out), "register_session": {"path": str(out), "name": p.name}}
+
+
+def run_replay(p: ReplayParams, ctx: JobContext) -> dict:
+    from app.viewer.data import write_viewer_arrays
+    from core.simulation.replay import replay, write_replay
+
+    prepared = _prepare(p, ctx, 0.0, 0.3, p.youngs_modulus)
+    result = replay(prepared.path, _replay_config(p, p.youngs_modulus), prepared=prepared, callback=ctx.scaled(0.0, 0.9))
+    write_replay(result, ctx.artifact_dir)
+    ctx.progress(0.92, "per-vertex errors for the viewer")
+    write_viewer_arrays(prepared, result, ctx.artifact_dir)
+    summary = result.to_json()
+    summary["viewer"] = True
+    return summary
+
+
+def run_sweep(p: SweepParams, ctx: JobContext) -> dict:
+    from core.identification import sweep, write_sweep
+
+    prepared = _prepare(p, ctx, 0.0, 0.1)
+    values = p.values()
+    with ctx.executor() as ex:
+        result = sweep(
+            prepared, values, sequences=p.sequences, base=_base_trial(p), refine=p.refine, executor=ex,
+            progress=lambda done, total: ctx.progress(0.1 + 0.85 * done / max(total, 1), f"{done}/{total} trials"),
+        )
+    write_sweep(result, ctx.artifact_dir)
+    table = result.table()
+    finite = {E: e for E, e in table.items() if math.isfinite(e)}
+    return {
+        "table": [{"youngs_modulus": E, "mean_error": (e if math.isfinite(e) else None)} for E, e in table.items()],
+        "rows": [{"youngs_modulus": r.trial.youngs_modulus, "sequence": r.trial.sequence, "status": r.status,
+                  "mean_error": r.mean_error if r.ok else None} for r in result.results],
+        "best": min(finite, key=finite.get) if finite else None,
+        "plot": "sweep.png",
+    }
+
+
+def run_fit(p: FitParams, ctx: JobContext) -> dict:
+    from core.identification import fit_youngs_modulus
+
+    prepared = _prepare(p, ctx, 0.0, 0.1)
+    with ctx.executor() as ex:
+        result = fit_youngs_modulus(
+            prepared, base=_base_trial(p), executor=ex,
+            use_force=None if p.use_force == "auto" else p.use_force == "yes", refine_mesh=p.refine_mesh,
+            # about 65 replays for a fit with force data (README); the bar saturates at 95 %
+            progress=lambda n, msg: ctx.progress(min(0.1 + 0.85 * n / 70.0, 0.95), f"{n} E values: {msg}"),
+        )
+    summary = result.to_json()
+    (ctx.artifact_dir / "fit.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def default_registry() -> Registry:
+    """The job types of this release: generate, replay, sweep, fit."""
+    return Registry([
+        JobType("generate", GenerateParams, run_generate, "synthetic session from the virtual lab"),
+        JobType("replay", ReplayParams, run_replay, "replay a session, paper's error, 3D view"),
+        JobType("sweep", SweepParams, run_sweep, "grid search over Young's modulus (Tables 1-2)"),
+        JobType("fit", FitParams, run_fit, "fit Young's modulus with a 95 % interval"),
+    ])

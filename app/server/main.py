@@ -1,0 +1,125 @@
+"""The app factory: settings -> database -> Dask runner -> viewer -> routes -> dashboard."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI
+from fastapi.responses import RedirectResponse
+from fastapi.staticfiles import StaticFiles
+from sqlalchemy import select
+
+from app.server import db as dbm
+from app.server.api.routes import job_types, jobs, sessions, system, viewer
+from app.server.errors import install_error_handlers
+from app.server.jobs.registry import Registry
+from app.server.jobs.runner import JobRunner
+from app.server.settings import Settings
+
+__all__ = ["create_app", "STATIC_DIR"]
+
+STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
+log = logging.getLogger(__name__)
+
+
+def _viewer_callbacks(factory):
+    """The callbacks the viewer gets: runs and sessions from the database, arrays from
+    run folders, ICP through the calibration service."""
+    from app.server.services import calibration as cal
+    from app.viewer.data import load_run
+    from app.viewer.scene import ViewerCallbacks
+
+    def runs():
+        with factory() as db:
+            q = (select(dbm.JobRecord).where(dbm.JobRecord.type == "replay", dbm.JobRecord.status == dbm.DONE)
+                 .order_by(dbm.JobRecord.id.desc()))
+            out = []
+            for j in db.scalars(q):
+                s = db.get(dbm.SessionRecord, j.session_id) if j.session_id else None
+                out.append((j.id, f"replay of {s.name if s else '?'} (E {j.params.get('youngs_modulus', 0):g} Pa)"))
+            return out
+
+    def load(run_id: int):
+        with factory() as db:
+            j = db.get(dbm.JobRecord, run_id)
+            if j is None:
+                raise KeyError(f"no job {run_id}")
+            return load_run(j.artifact_dir, label=f"job {j.id}")
+
+    def sessions():
+        with factory() as db:
+            return [(s.id, s.name) for s in db.scalars(select(dbm.SessionRecord).order_by(dbm.SessionRecord.id))]
+
+    def path_of(session_id: int) -> str:
+        with factory() as db:
+            s = db.get(dbm.SessionRecord, session_id)
+            if s is None:
+                raise KeyError(f"no session {session_id}")
+            return s.path
+
+    return ViewerCallbacks(
+        runs=runs, load_run=load, sessions=sessions,
+        icp_inputs=lambda sid: cal.reference_and_surface(path_of(sid)),
+        icp_preview=lambda sid, pc, pp: cal.preview(path_of(sid), pc, pp),
+        icp_accept=lambda sid, pc, pp: cal.accept(path_of(sid), pc, pp),
+    )
+
+
+def create_app(settings: Settings | None = None, registry: Registry | None = None) -> FastAPI:
+    """Build the workbench app. Start-up (in the lifespan): create the data folders and
+    tables, mark jobs a previous server left behind ``interrupted``, start the Dask
+    runner and (``settings.viewer``) the viser viewer; shut-down stops both.
+
+    Args:
+        settings: defaults from the environment (:class:`Settings`).
+        registry: job types (default :func:`app.server.jobs.types.default_registry`).
+    """
+    settings = settings or Settings()
+    if registry is None:
+        from app.server.jobs.types import default_registry
+
+        registry = default_registry()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
+        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        engine = dbm.make_engine(settings.url)
+        factory = dbm.make_sessionmaker(engine)
+        n = dbm.mark_interrupted(factory)
+        if n:
+            log.warning("%d job(s) of a previous server marked interrupted", n)
+        runner = JobRunner(settings, factory, registry)
+        runner.start()
+        app.state.settings, app.state.registry = settings, registry
+        app.state.sessionmaker, app.state.runner, app.state.viewer = factory, runner, None
+        try:
+            if settings.viewer:
+                from app.viewer.scene import WorkbenchViewer
+
+                app.state.viewer = WorkbenchViewer(_viewer_callbacks(factory), settings.viewer_host, settings.viewer_port)
+            yield
+        finally:
+            if app.state.viewer is not None:
+                app.state.viewer.stop()
+            runner.close()
+            engine.dispose()
+
+    app = FastAPI(
+        title="Tissue Twin workbench",
+        description="Sessions, jobs (generate, replay, sweep, fit) on Dask, artifacts, and the 3D viewer.",
+        version="0.1.0",
+        lifespan=lifespan,
+    )
+    install_error_handlers(app)
+    for r in (system.router, sessions.router, job_types.router, jobs.router, viewer.router):
+        app.include_router(r)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", include_in_schema=False)
+    def index():
+        return RedirectResponse("/static/index.html")
+
+    return app

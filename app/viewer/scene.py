@@ -1,0 +1,571 @@
+"""The workbench's 3D viewer (viser, its own port; the dashboard embeds it in an iframe).
+
+It only consumes: arrays (:class:`app.viewer.data.RunArrays`) and callbacks given by
+the server (list runs, load a run, list sessions, ICP inputs, preview, accept). It never
+reaches into solvers. GUI building is split into ``_populate_*`` functions per tab
+(nerfstudio's habit).
+
+Replay tab: the cleaned measured cloud, the raw FEM mesh surface coloured by per-vertex
+error (legend in mm), the corrected mesh when the run has one, the probe sphere; layer
+toggles; a timeline slider, play/pause, -1/+1 frame, frame number and time. A run is
+loaded once; moving the slider swaps buffers (mesh GLBs are encoded once per frame and
+cached).
+
+ICP tab: pick K >= 3 points on the reference cloud (shown from the depth camera's own
+viewpoint, camera frame) and the matching points on the phantom's rest surface
+(phantom frame); *Compute* runs Kabsch + ICP through the server's callback and shows
+the reference cloud before (Kabsch, orange) and after (ICP, green) on the rest
+surface with the residuals; *Accept* saves the session's calibration.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from app.viewer.data import RunArrays, SequenceArrays
+
+__all__ = ["ViewerCallbacks", "WorkbenchViewer", "error_colors", "colorbar"]
+
+_NAN_GREY = np.array([150, 150, 150], dtype=np.uint8)
+
+
+def error_colors(err: np.ndarray, vmax: float) -> np.ndarray:
+    """(…) errors in m -> (…, 3) uint8 RGB on viridis over [0, vmax]; NaN -> grey."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["viridis"]
+    x = np.clip(np.nan_to_num(err / max(vmax, 1e-12), nan=0.0), 0.0, 1.0)
+    rgb = (cmap(x)[..., :3] * 255).astype(np.uint8)
+    rgb[~np.isfinite(err)] = _NAN_GREY
+    return rgb
+
+
+def colorbar(width: int = 256, height: int = 16) -> np.ndarray:
+    """(height, width, 3) uint8 viridis ramp, left = 0."""
+    ramp = error_colors(np.linspace(0.0, 1.0, width), 1.0)
+    return np.repeat(ramp[None, :, :], height, axis=0)
+
+
+def _nice_ceil_mm(x_m: float) -> float:
+    """Round a positive length (m) up to 1, 2 or 5 x 10^k mm; returned in m."""
+    mm = max(x_m * 1e3, 1e-3)
+    k = np.floor(np.log10(mm))
+    for m in (1.0, 2.0, 5.0, 10.0):
+        if mm <= m * 10**k:
+            return float(m * 10**k * 1e-3)
+    return float(10 ** (k + 1) * 1e-3)
+
+
+@dataclass(frozen=True)
+class ViewerCallbacks:
+    """What the viewer may ask of the server.
+
+    Attributes:
+        runs: ``() -> [(run_id, label)]`` finished replay runs.
+        load_run: ``(run_id) -> RunArrays``.
+        sessions: ``() -> [(session_id, label)]``.
+        icp_inputs: ``(session_id) -> (reference_camera (N, 3), rest_surface (P, 3), size (3,))`` m.
+        icp_preview: ``(session_id, points_camera (K, 3), points_phantom (K, 3)) -> dict``
+            with ``T_init``, ``T_phantom_camera``, ``rms_init``, ``rms``, ``fitness``.
+        icp_accept: same arguments; saves the calibration; returns the stored dict.
+    """
+
+    runs: Callable[[], list[tuple[int, str]]]
+    load_run: Callable[[int], RunArrays]
+    sessions: Callable[[], list[tuple[int, str]]]
+    icp_inputs: Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    icp_preview: Callable[[int, np.ndarray, np.ndarray], dict]
+    icp_accept: Callable[[int, np.ndarray, np.ndarray], dict]
+
+
+class _SequenceView:
+    """Per-sequence display buffers, made once when the sequence is first shown."""
+
+    def __init__(self, seq: SequenceArrays):
+        self.seq = seq
+        finite = seq.vertex_error[np.isfinite(seq.vertex_error)]
+        self.vmax = _nice_ceil_mm(float(np.percentile(finite, 95)) if finite.size else 1e-3)
+        self.colors = error_colors(seq.vertex_error, self.vmax)
+        self.corrected_colors = None
+        if seq.corrected_positions is not None:
+            err = seq.corrected_vertex_error
+            self.corrected_colors = (error_colors(err, self.vmax) if err is not None
+                                     else np.tile(np.array([255, 140, 0], np.uint8), (*seq.corrected_positions.shape[:2], 1)))
+        self._glb: dict[tuple[str, int], bytes] = {}
+
+    def glb(self, which: str, f: int) -> bytes:
+        """GLB bytes of the raw (``"fem"``) or corrected mesh at frame ``f`` (cached)."""
+        key = (which, f)
+        if key not in self._glb:
+            import trimesh
+
+            pos = self.seq.positions[f] if which == "fem" else self.seq.corrected_positions[f]
+            col = self.colors[f] if which == "fem" else self.corrected_colors[f]
+            rgba = np.concatenate([col, np.full((col.shape[0], 1), 255, np.uint8)], axis=1)
+            mesh = trimesh.Trimesh(np.nan_to_num(pos), self.seq.faces, vertex_colors=rgba, process=False)
+            with io.BytesIO() as buf:
+                mesh.export(buf, file_type="glb")
+                self._glb[key] = buf.getvalue()
+        return self._glb[key]
+
+
+class WorkbenchViewer:
+    """A viser server with the replay and ICP tabs.
+
+    Args:
+        callbacks: see :class:`ViewerCallbacks`.
+        host, port: where viser listens (the next free port is taken if busy; see ``port``).
+    """
+
+    def __init__(self, callbacks: ViewerCallbacks, host: str = "127.0.0.1", port: int = 8081):
+        import viser
+
+        self.cb = callbacks
+        self.server = viser.ViserServer(host=host, port=port, label="Tissue Twin", verbose=False)
+        self.port = int(self.server.get_port())
+        self.server.scene.set_up_direction("+z")
+        self._lock = threading.RLock()
+        self._mute = False
+        self.mode = "replay"
+        self.run_id: int | None = None
+        self.run: RunArrays | None = None
+        self.view: _SequenceView | None = None
+        self._views: dict[str, _SequenceView] = {}
+        self.frame = 0
+        self.playing = False
+        self.first_frame_seconds: float | None = None
+        self.icp: dict[str, Any] = {"session_id": None, "pick_on": "reference", "picks_reference": [],
+                                    "picks_phantom": [], "result": None, "accepted": None, "error": None}
+        self._icp_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self._handles: dict[str, Any] = {}
+        self._replay_root = self.server.scene.add_frame("/replay", show_axes=False)
+        self._icp_root = self.server.scene.add_frame("/icp", show_axes=False, visible=False)
+        tabs = self.server.gui.add_tab_group()
+        self._populate_replay(tabs.add_tab("Replay"))
+        self._populate_icp(tabs.add_tab("ICP init"))
+        self.server.scene.on_click()(self._on_click)
+        self._stop = threading.Event()
+        self._player = threading.Thread(target=self._play_loop, name="viewer-play", daemon=True)
+        self._player.start()
+
+    # ------------------------------------------------------------------ GUI
+    def _populate_replay(self, tab) -> None:
+        gui = self.server.gui
+        with tab:
+            self.gui_run = gui.add_dropdown("Run", options=("(none)",), initial_value="(none)")
+            self.gui_sequence = gui.add_dropdown("Sequence", options=("(none)",), initial_value="(none)")
+            self.gui_refresh = gui.add_button("Refresh runs")
+            self.gui_cloud = gui.add_checkbox("Measured cloud", True)
+            self.gui_fem = gui.add_checkbox("FEM mesh", True)
+            self.gui_corrected = gui.add_checkbox("Corrected mesh", True, disabled=True)
+            self.gui_probe = gui.add_checkbox("Probe", True)
+            self.gui_frame = gui.add_slider("Frame", min=0, max=1, step=1, initial_value=0, disabled=True)
+            self.gui_play = gui.add_button("Play / pause")
+            self.gui_prev = gui.add_button("-1 frame")
+            self.gui_next = gui.add_button("+1 frame")
+            self.gui_info = gui.add_markdown("No run loaded. Finish a replay job, then pick it here or press *view* in the dashboard.")
+            self.gui_legend = gui.add_image(colorbar(), label="error (mm)", format="png")
+            self.gui_legend_text = gui.add_markdown("per-vertex error: 0 mm (left) to - mm (right); grey: no measured point")
+
+        self.gui_refresh.on_click(lambda _e: self._refresh_runs())
+        self.gui_run.on_update(lambda _e: None if self._mute else self._on_run_selected())
+        self.gui_sequence.on_update(lambda _e: None if self._mute else self._on_sequence_selected())
+        for box in (self.gui_cloud, self.gui_fem, self.gui_corrected, self.gui_probe):
+            box.on_update(lambda _e: self._apply_visibility())
+        self.gui_frame.on_update(lambda _e: None if self._mute else self.set_frame(int(self.gui_frame.value)))
+        self.gui_play.on_click(lambda _e: self.toggle_play())
+        self.gui_prev.on_click(lambda _e: self.step(-1))
+        self.gui_next.on_click(lambda _e: self.step(+1))
+        self._refresh_runs()
+
+    def _populate_icp(self, tab) -> None:
+        gui = self.server.gui
+        with tab:
+            self.gui_session = gui.add_dropdown("Session", options=("(none)",), initial_value="(none)")
+            self.gui_load_session = gui.add_button("Load session")
+            self.gui_pick_on = gui.add_button_group("Pick on", options=("reference cloud", "phantom surface"))
+            self.gui_picks = gui.add_markdown("picks: reference 0, phantom 0")
+            self.gui_undo = gui.add_button("Undo last pick")
+            self.gui_clear = gui.add_button("Clear picks")
+            self.gui_compute = gui.add_button("Compute ICP")
+            self.gui_accept = gui.add_button("Accept calibration")
+            self.gui_back = gui.add_button("Back to replay")
+            self.gui_icp_info = gui.add_markdown("Load a session, click >= 3 points on the reference cloud, then the "
+                                                 "matching points on the phantom surface, in the same order.")
+        self.gui_load_session.on_click(lambda _e: self._on_load_session())
+        self.gui_pick_on.on_click(lambda e: self.set_pick_on("reference" if e.target.value.startswith("reference") else "phantom"))
+        self.gui_undo.on_click(lambda _e: self._undo_pick())
+        self.gui_clear.on_click(lambda _e: self._clear_picks())
+        self.gui_compute.on_click(lambda _e: self.compute_icp())
+        self.gui_accept.on_click(lambda _e: self.accept_icp())
+        self.gui_back.on_click(lambda _e: self._set_mode("replay"))
+        self._refresh_sessions()
+
+    # ------------------------------------------------------------------ replay
+    def _refresh_runs(self) -> None:
+        runs = self.cb.runs()
+        options = tuple(f"{rid}: {label}" for rid, label in runs) or ("(none)",)
+        with self._lock:
+            self._mute = True
+            try:
+                current = self.gui_run.value
+                self.gui_run.options = options
+                self.gui_run.value = current if current in options else options[0]
+            finally:
+                self._mute = False
+
+    def _on_run_selected(self) -> None:
+        value = self.gui_run.value
+        if value and value[0].isdigit():
+            self.show_run(int(value.split(":", 1)[0]))
+
+    def _on_sequence_selected(self) -> None:
+        if self.run is not None and self.gui_sequence.value in self.run.sequences:
+            self.show_run(self.run_id, self.gui_sequence.value)
+
+    def show_run(self, run_id: int, sequence: str | None = None) -> None:
+        """Show sequence ``sequence`` (default: the first) of run ``run_id``; the run's
+        arrays are loaded on first use and kept.
+
+        Raises:
+            KeyError: the run has no such sequence. Whatever ``load_run`` raises.
+        """
+        t0 = time.perf_counter()
+        with self._lock:
+            if self.run_id != run_id or self.run is None:
+                self.run = self.cb.load_run(run_id)
+                self.run_id = run_id
+                self._views = {}
+            name = sequence or next(iter(self.run.sequences))
+            if name not in self.run.sequences:
+                raise KeyError(f"run {run_id} has no sequence {name!r}; it has {list(self.run.sequences)}")
+            if name not in self._views:
+                self._views[name] = _SequenceView(self.run.sequences[name])
+            self.view = self._views[name]
+            self.playing = False
+            self._mute = True
+            try:
+                self._refresh_runs()
+                self._mute = True
+                label = next((o for o in self.gui_run.options if o.startswith(f"{run_id}:")), None)
+                if label:
+                    self.gui_run.value = label
+                self.gui_sequence.options = tuple(self.run.sequences)
+                self.gui_sequence.value = name
+                n = self.view.seq.n_frames
+                self.gui_frame.max = max(n - 1, 1)
+                self.gui_frame.disabled = n < 2
+                self.gui_corrected.disabled = self.view.seq.corrected_positions is None
+            finally:
+                self._mute = False
+            self.gui_legend_text.content = (f"per-vertex error: 0 mm (left) to {self.view.vmax * 1e3:g} mm (right); "
+                                            "grey: no measured point")
+            self._build_replay_nodes()
+            self._set_mode("replay")
+            self.set_frame(0)
+            self.first_frame_seconds = time.perf_counter() - t0
+
+    def _build_replay_nodes(self) -> None:
+        scene = self.server.scene
+        seq = self.view.seq
+        for key in ("cloud", "fem", "corrected", "probe"):
+            h = self._handles.pop(key, None)
+            if h is not None:
+                h.remove()
+        self._handles["cloud"] = scene.add_point_cloud(
+            "/replay/cloud", seq.cloud(0), colors=(90, 170, 255), point_size=0.0012, precision="float32", point_shape="circle")
+        self._handles["fem"] = scene.add_glb("/replay/fem", self.view.glb("fem", 0))
+        if seq.corrected_positions is not None:
+            self._handles["corrected"] = scene.add_glb("/replay/corrected", self.view.glb("corrected", 0))
+        self._handles["probe"] = scene.add_icosphere(
+            "/replay/probe", radius=seq.probe_radius, color=(220, 60, 60), position=tuple(float(v) for v in seq.probe_centres[0]))
+        self._apply_visibility()
+        centre = np.nanmean(seq.positions[0], axis=0)
+        for client in self.server.get_clients().values():
+            client.camera.look_at = tuple(float(v) for v in centre)
+            client.camera.position = tuple(float(v) for v in centre + np.array([0.0, -0.16, 0.12]))
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+
+    def _apply_visibility(self) -> None:
+        for key, box in (("cloud", self.gui_cloud), ("fem", self.gui_fem), ("corrected", self.gui_corrected), ("probe", self.gui_probe)):
+            h = self._handles.get(key)
+            if h is not None:
+                h.visible = bool(box.value)
+
+    def set_frame(self, f: int) -> None:
+        """Show frame ``f`` (clipped to the sequence): swap the cloud, mesh and probe buffers."""
+        with self._lock:
+            if self.view is None:
+                return
+            seq = self.view.seq
+            f = int(np.clip(f, 0, seq.n_frames - 1))
+            self.frame = f
+            self._handles["cloud"].points = seq.cloud(f)
+            self._handles["fem"].glb_data = self.view.glb("fem", f)
+            if "corrected" in self._handles:
+                self._handles["corrected"].glb_data = self.view.glb("corrected", f)
+            self._handles["probe"].position = tuple(float(v) for v in seq.probe_centres[f])
+            err = seq.frame_errors[f]
+            self.gui_info.content = (f"**frame** {f} / {seq.n_frames - 1} &nbsp; **t** {seq.times[f]:.3f} s &nbsp; "
+                                     f"**mean error** {err * 1e3:.3f} mm &nbsp; ({seq.name}, {seq.role})")
+            if int(self.gui_frame.value) != f:
+                self._mute = True
+                try:
+                    self.gui_frame.value = f
+                finally:
+                    self._mute = False
+
+    def step(self, delta: int) -> None:
+        """Move by ``delta`` frames (pauses playback)."""
+        self.playing = False
+        self.set_frame(self.frame + delta)
+
+    def toggle_play(self) -> None:
+        self.playing = not self.playing and self.view is not None
+
+    def _play_loop(self) -> None:
+        while not self._stop.is_set():
+            if self.playing and self.view is not None:
+                seq = self.view.seq
+                dt = float(np.median(np.diff(seq.times))) if seq.n_frames > 1 else 0.1
+                self.set_frame((self.frame + 1) % seq.n_frames)
+                self._stop.wait(max(dt, 0.02))
+            else:
+                self._stop.wait(0.05)
+
+    # ------------------------------------------------------------------ ICP
+    def _refresh_sessions(self) -> None:
+        options = tuple(f"{sid}: {label}" for sid, label in self.cb.sessions()) or ("(none)",)
+        current = self.gui_session.value
+        self.gui_session.options = options
+        self.gui_session.value = current if current in options else options[0]
+
+    def _on_load_session(self) -> None:
+        value = self.gui_session.value
+        if value and value[0].isdigit():
+            self.start_icp(int(value.split(":", 1)[0]))
+
+    def start_icp(self, session_id: int) -> None:
+        """Enter picking mode on a session: show its reference cloud from the camera's viewpoint."""
+        with self._lock:
+            self._icp_data = self.cb.icp_inputs(session_id)
+            ref, surface, _ = self._icp_data
+            self.icp.update(session_id=session_id, picks_reference=[], picks_phantom=[], result=None, accepted=None, error=None)
+            self._refresh_sessions()
+            label = next((o for o in self.gui_session.options if o.startswith(f"{session_id}:")), None)
+            if label:
+                self.gui_session.value = label
+            scene = self.server.scene
+            finite = ref[np.all(np.isfinite(ref), axis=1)]
+            depth = finite[:, 2]
+            shade = np.clip((depth - depth.min()) / max(np.ptp(depth), 1e-9), 0, 1)
+            grey = (230 - 130 * shade).astype(np.uint8)
+            self._handles["icp_reference"] = scene.add_point_cloud(
+                "/icp/reference", finite.astype(np.float32), colors=np.stack([grey, grey, grey], 1),
+                point_size=0.0015, precision="float32")
+            self._handles["icp_surface"] = scene.add_point_cloud(
+                "/icp/surface", surface.astype(np.float32), colors=(120, 200, 140), point_size=0.0012, precision="float32")
+            for key in ("icp_before", "icp_after"):
+                h = self._handles.pop(key, None)
+                if h is not None:
+                    h.remove()
+            self._draw_picks()
+            self._set_mode("icp")
+            self.set_pick_on("reference")
+
+    def set_pick_on(self, which: str) -> None:
+        """Pick on ``"reference"`` (camera frame, seen from the camera) or ``"phantom"``."""
+        if which not in ("reference", "phantom"):
+            raise ValueError(f"pick on 'reference' or 'phantom', got {which!r}")
+        with self._lock:
+            self.icp["pick_on"] = which
+            if self._icp_data is None:
+                return
+            ref, surface, size = self._icp_data
+            self._handles["icp_reference"].visible = which == "reference"
+            self._handles["icp_surface"].visible = which == "phantom"
+            for key in ("icp_before", "icp_after"):
+                if key in self._handles:
+                    self._handles[key].visible = False
+            self._handles["picks_reference"].visible = which == "reference"
+            self._handles["picks_phantom"].visible = which == "phantom"
+            if which == "reference":
+                finite = ref[np.all(np.isfinite(ref), axis=1)]
+                self._set_camera(position=(0.0, 0.0, 0.0), look_at=np.median(finite, axis=0), up=(0.0, -1.0, 0.0))
+            else:
+                centre = np.array([size[0] / 2, size[1] / 2, size[2]])
+                self._set_camera(position=centre + np.array([0.0, -0.12, 0.16]), look_at=centre, up=(0.0, 0.0, 1.0))
+
+    def _set_camera(self, position, look_at, up) -> None:
+        for client in self.server.get_clients().values():
+            client.camera.up_direction = tuple(float(v) for v in up)
+            client.camera.position = tuple(float(v) for v in position)
+            client.camera.look_at = tuple(float(v) for v in look_at)
+
+    def _on_click(self, event) -> None:
+        if self.mode != "icp" or self._icp_data is None:
+            return
+        o = np.asarray(event.ray_origin, float)
+        d = np.asarray(event.ray_direction, float)
+        self.pick_ray(o, d)
+
+    def pick_ray(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
+        """Add the point nearest to a ray (front-most surface) on the active cloud.
+
+        Args:
+            origin, direction: (3,) the click ray in world coordinates (the active cloud's frame).
+
+        Returns:
+            the picked (3,) point, m, or None when the ray passes no point within
+            ~0.6 degrees (about 7 pixels).
+        """
+        with self._lock:
+            ref, surface, _ = self._icp_data
+            which = self.icp["pick_on"]
+            pts = ref[np.all(np.isfinite(ref), axis=1)] if which == "reference" else surface
+            d = direction / np.linalg.norm(direction)
+            v = pts - origin
+            t = v @ d
+            perp = np.linalg.norm(v - t[:, None] * d, axis=1)
+            ok = (t > 0) & (perp < np.maximum(0.002, 0.01 * t))
+            if not ok.any():
+                self.gui_icp_info.content = "missed: click on a point of the cloud"
+                return None
+            idx = np.flatnonzero(ok)
+            front = idx[t[idx] < t[idx].min() + 0.005]
+            best = front[np.argmin(perp[front])]
+            p = pts[best].astype(float)
+            self.icp["picks_" + which].append(p.tolist())
+            self.icp["result"] = None
+            self._draw_picks()
+            return p
+
+    def _draw_picks(self) -> None:
+        scene = self.server.scene
+        for which, color in (("reference", (255, 40, 40)), ("phantom", (255, 40, 200))):
+            pts = np.asarray(self.icp["picks_" + which], dtype=np.float32).reshape(-1, 3)
+            visible = self.icp["pick_on"] == which and self.mode == "icp"
+            self._handles["picks_" + which] = scene.add_point_cloud(
+                f"/icp/picks_{which}", pts if len(pts) else np.zeros((1, 3), np.float32), colors=color,
+                point_size=0.005, precision="float32", point_shape="circle", visible=visible and len(pts) > 0)
+        nr, npk = len(self.icp["picks_reference"]), len(self.icp["picks_phantom"])
+        self.gui_picks.content = f"picks: reference {nr}, phantom {npk} (need >= 3 each, same order)"
+
+    def _undo_pick(self) -> None:
+        with self._lock:
+            picks = self.icp["picks_" + self.icp["pick_on"]]
+            if picks:
+                picks.pop()
+            self._draw_picks()
+
+    def _clear_picks(self) -> None:
+        with self._lock:
+            self.icp.update(picks_reference=[], picks_phantom=[], result=None)
+            self._draw_picks()
+
+    def _pairs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        pc = np.asarray(self.icp["picks_reference"], float).reshape(-1, 3)
+        pp = np.asarray(self.icp["picks_phantom"], float).reshape(-1, 3)
+        if len(pc) < 3 or len(pc) != len(pp):
+            self.gui_icp_info.content = f"need the same number (>= 3) of picks on both; have {len(pc)} and {len(pp)}"
+            return None
+        return pc, pp
+
+    def compute_icp(self) -> dict | None:
+        """Kabsch + ICP on the picks (server callback); shows before/after. None if it failed."""
+        with self._lock:
+            pairs = self._pairs()
+            if pairs is None or self.icp["session_id"] is None:
+                return None
+            try:
+                res = self.cb.icp_preview(self.icp["session_id"], *pairs)
+            except Exception as exc:  # noqa: BLE001 - shown to the user, the viewer stays up
+                self.icp.update(result=None, error=str(exc))
+                self.gui_icp_info.content = f"**ICP failed:** {exc}"
+                return None
+            self.icp.update(result=res, error=None)
+            ref, surface, _ = self._icp_data
+            finite = ref[np.all(np.isfinite(ref), axis=1)]
+            scene = self.server.scene
+            for key, T, color in (("icp_before", res["T_init"], (255, 150, 30)), ("icp_after", res["T_phantom_camera"], (40, 200, 60))):
+                T = np.asarray(T)
+                q = finite @ T[:3, :3].T + T[:3, 3]
+                keep = np.all(np.abs(q - q.mean(0)) < 0.2, axis=1)  # the neighbourhood of the phantom
+                self._handles[key] = scene.add_point_cloud(f"/icp/{key}", q[keep].astype(np.float32), colors=color,
+                                                           point_size=0.0012, precision="float32")
+            self._handles["icp_reference"].visible = False
+            self._handles["icp_surface"].visible = True
+            self._handles["picks_reference"].visible = False
+            self._handles["picks_phantom"].visible = False
+            self.gui_icp_info.content = (
+                f"**before** (Kabsch on picks, orange): rms {res['rms_init'] * 1e3:.2f} mm  \n"
+                f"**after** (ICP, green): rms {res['rms'] * 1e3:.2f} mm, fitness {res['fitness']:.2f}  \n"
+                "Accept to save the session's calibration.")
+            size = self._icp_data[2]
+            centre = np.array([size[0] / 2, size[1] / 2, size[2]])
+            self._set_camera(position=centre + np.array([0.0, -0.12, 0.16]), look_at=centre, up=(0.0, 0.0, 1.0))
+            return res
+
+    def accept_icp(self) -> dict | None:
+        """Save the calibration through the server callback. None if it failed."""
+        with self._lock:
+            pairs = self._pairs()
+            if pairs is None or self.icp["session_id"] is None:
+                return None
+            try:
+                stored = self.cb.icp_accept(self.icp["session_id"], *pairs)
+            except Exception as exc:  # noqa: BLE001
+                self.icp["error"] = str(exc)
+                self.gui_icp_info.content = f"**not saved:** {exc}"
+                return None
+            self.icp["accepted"] = stored
+            self.gui_icp_info.content = (f"**saved** calibration/picked.json: ICP rms {stored['rms'] * 1e3:.2f} mm. "
+                                         "New replay, sweep and fit jobs of this session use it.")
+            return stored
+
+    # ------------------------------------------------------------------ state
+    def _set_mode(self, mode: str) -> None:
+        self.mode = mode
+        self._replay_root.visible = mode == "replay"
+        self._icp_root.visible = mode == "icp"
+        if mode == "replay" and self.view is not None:
+            centre = np.nanmean(self.view.seq.positions[self.frame], axis=0)
+            self._set_camera(position=centre + np.array([0.0, -0.16, 0.12]), look_at=centre, up=(0.0, 0.0, 1.0))
+
+    def state(self) -> dict:
+        """JSON-able state: mode, run, sequence, frame, time, playback, picks, client camera."""
+        with self._lock:
+            seq = self.view.seq if self.view is not None else None
+            cam = None
+            clients = list(self.server.get_clients().values())
+            if clients:
+                c = clients[-1].camera
+                cam = {"position": np.asarray(c.position).tolist(), "look_at": np.asarray(c.look_at).tolist(),
+                       "up": np.asarray(c.up_direction).tolist(), "fov": float(c.fov), "aspect": float(c.aspect)}
+            return {
+                "port": self.port,
+                "mode": self.mode,
+                "run_id": self.run_id,
+                "sequence": seq.name if seq else None,
+                "sequences": list(self.run.sequences) if self.run else [],
+                "frame": self.frame,
+                "n_frames": seq.n_frames if seq else 0,
+                "time": float(seq.times[self.frame]) if seq else None,
+                "playing": self.playing,
+                "first_frame_seconds": self.first_frame_seconds,
+                "clients": len(clients),
+                "camera": cam,
+                "icp": {k: v for k, v in self.icp.items()},
+            }
+
+    def stop(self) -> None:
+        """Stop playback and the viser server."""
+        self._stop.set()
+        self._player.join(timeout=2)
+        self.server.stop()
