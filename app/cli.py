@@ -289,7 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _command_groups() -> list:
     """Subcommands that live in their own modules; each module exposes ``register(subparsers)``."""
-    return []
+    from app import cli_learning
+
+    return [cli_learning.register]
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -31,6 +31,8 @@ from core.simulation.probe import ProbePath
 __all__ = ["SimulationResult", "StepInfo", "step", "simulate", "static_equilibrium", "internal_forces"]
 
 ProgressCallback = Callable[[float, str], None]
+FrameHook = Callable[[int, float, np.ndarray], "np.ndarray | None"]
+"""``frame_hook(j, t_j, positions (N, 3) m) -> corrected (N, 3) positions or None``."""
 
 
 @dataclass(frozen=True)
@@ -332,6 +334,7 @@ def simulate(
     *,
     state: State | None = None,
     callback: ProgressCallback | None = None,
+    frame_hook: FrameHook | None = None,
 ) -> SimulationResult:
     """Replay a probe path and record node positions at the output (camera) times.
 
@@ -348,12 +351,22 @@ def simulate(
         output_times: (F,) increasing times, s.
         state: optional start state (e.g. from a previous run).
         callback: ``callback(fraction, message)`` for progress.
+        frame_hook: optional in-loop correction at the end of each output frame (Wu et
+            al. 2020, Sec. 3.3: "at the end of each timestep, the simulator passes the
+            position of the phantom mesh to the trained network"). Called as
+            ``frame_hook(j, t_j, positions)`` with the frame index, its time (s) and a
+            copy of the (N, 3) node positions (m, phantom frame) recorded for it; it
+            returns None (no change) or corrected (N, 3) positions. The change is added
+            to the positions of the current state's free nodes (fixed nodes never move;
+            velocities are kept), the simulation continues from there, and the
+            corrected positions are what the result records for frame j.
 
     Returns:
         A :class:`SimulationResult`. Divergence is reported in ``status``, not raised.
 
     Raises:
-        SimulationError: on invalid inputs (empty or decreasing output times).
+        SimulationError: on invalid inputs (empty or decreasing output times), or a
+            ``frame_hook`` that returns an array of the wrong shape.
     """
     import time
 
@@ -395,8 +408,26 @@ def simulate(
     status, message = "ok", ""
     prev_x, prev_f = state.x, np.zeros(3)
     j = 0
+    free = model.free[:, None]
+
+    def record(j: int, x: np.ndarray) -> None:
+        """Store frame j; with a hook, shift the state's free nodes by its correction."""
+        out_x[j] = x
+        if frame_hook is None:
+            return
+        new = frame_hook(j, float(times[j]), x.copy())
+        if new is None:
+            return
+        new = np.asarray(new, dtype=np.float64)
+        if new.shape != x.shape:
+            raise SimulationError(f"frame_hook must return ({n_nodes}, 3) positions, got {new.shape}")
+        delta = np.where(free, new - x, 0.0)
+        out_x[j] = x + delta
+        state.x = state.x + delta
+
     while j < times.size and k_of[j] == 0:
-        out_x[j], out_f[j] = state.x, 0.0
+        record(j, state.x)
+        out_f[j] = 0.0
         j += 1
     report_every = max(n_steps // 50, 1)
     for k in range(1, n_steps + 1):
@@ -413,8 +444,8 @@ def simulate(
             break
         while j < times.size and k_of[j] == k:
             a = (times[j] - step_t[k - 1]) / dt
-            out_x[j] = (1 - a) * prev_x + a * state.x
             out_f[j] = (1 - a) * prev_f + a * info.contact_force
+            record(j, (1 - a) * prev_x + a * state.x)
             j += 1
         prev_x, prev_f = state.x, info.contact_force
         if callback is not None and (k % report_every == 0 or k == n_steps):
