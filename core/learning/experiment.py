@@ -172,6 +172,9 @@ class EvaluationResult:
         values: [(label, E in Pa)], e.g. ("identified", 5100.0), ("too stiff", 51000.0), ("10 Pa", 10.0).
         reports: {(label, kind): :class:`TrainReport`}.
         identification: how the identified E was obtained (dict).
+        no_network: {label: {test sequence: (mean error m or NaN, points)}} of the plain replays.
+        failures: {(label, kind): why that network could not be trained (e.g. every train
+            simulation diverged at 10 Pa); its cells read N/A}.
         timings: s.
     """
 
@@ -179,25 +182,25 @@ class EvaluationResult:
     values: list[tuple[str, float]]
     reports: dict[tuple[str, str], TrainReport]
     identification: dict
+    no_network: dict[str, dict[str, tuple[float, int]]] = field(default_factory=dict)
+    failures: dict[tuple[str, str], str] = field(default_factory=dict)
+    kinds: tuple[str, ...] = ("2d", "3d")
     timings: dict[str, float] = field(default_factory=dict)
 
     def rows(self) -> list[dict]:
-        """One row per (E, test sequence) plus a pooled "all test" row per E; errors in m."""
+        """One row per (E, test sequence) plus a pooled "all test" row per E; errors in m
+        (NaN where a simulation diverged or a network could not be trained)."""
         out = []
         for label, E in self.values:
-            reps = {k: self.reports.get((label, k)) for k in ("2d", "3d")}
-            any_rep = next(r for r in reps.values() if r is not None)
-            names = list(any_rep.no_network) + ["all test"]
-            for name in names:
+            base = self.no_network[label]
+            for name in list(base) + ["all test"]:
                 row = {"label": label, "youngs_modulus": E, "sequence": name}
-                if name == "all test":
-                    row["no_network"] = any_rep.test_error["no_network"]
-                else:
-                    row["no_network"] = any_rep.no_network[name][0]
-                for k, rep in reps.items():
+                row["no_network"] = _pooled(list(base.values())) if name == "all test" else base[name][0]
+                for k in self.kinds:
+                    rep = self.reports.get((label, k))
                     if rep is None:
-                        continue
-                    if name == "all test":
+                        row[k] = row[k + "_offline"] = float("nan")
+                    elif name == "all test":
                         te = rep.test_error
                         row[k], row[k + "_offline"] = te["corrected"], te["corrected_offline"]
                     else:
@@ -217,6 +220,7 @@ class EvaluationResult:
             "youngs_modulus": {label: E for label, E in self.values},
             "rows": [{k: (_num(v) if isinstance(v, float) else v) for k, v in r.items()} for r in self.rows()],
             "runs": {f"{label}/{kind}": rep.to_json() for (label, kind), rep in self.reports.items()},
+            "failures": {f"{label}/{kind}": msg for (label, kind), msg in self.failures.items()},
             "timings": self.timings,
         }
 
@@ -243,7 +247,11 @@ class EvaluationResult:
         head = (f"# Learned correction, {self.session}\n\n"
                 "Mean distance (mm) from the measured test points to the nearest vertex of the 3x super-sampled "
                 "mesh (Wu et al. 2020, Table 3).\n\n## In-loop correction (the paper's use)\n\n")
-        return head + "\n".join(lines) + "\n\n## Offline correction of the plain replay\n\n" + "\n".join(off) + "\n"
+        notes = "".join(f"\n- {label}, {kind.upper()}: not trained: {msg}" for (label, kind), msg in self.failures.items())
+        if notes:
+            notes = "\nN/A: a simulation diverged (the paper's N/A) or the network could not be trained." + notes + "\n"
+        return (head + "\n".join(lines) + "\n\n## Offline correction of the plain replay\n\n" + "\n".join(off) + "\n"
+                + notes)
 
 
 def evaluate_networks(
@@ -270,21 +278,29 @@ def evaluate_networks(
     """
     network_config = network_config or NetworkConfig()
     t0 = time.perf_counter()
-    reports = {}
+    reports, failures, baselines = {}, {}, {}
     n = len(values) * (len(kinds) + 1)
     step = 0
     for label, E in values:
         cfg = replace(base_config, youngs_modulus=float(E))
         frames = build_frames(prepared, cfg, session=session, callback=_scaled(callback, step / n, (step + 1) / n, f"E {E:g}: replay "))
+        baselines[label] = {name: (f.mean_error, int(sum(c.shape[0] for c in f.clouds)))
+                            for name, f in frames.items() if f.role == "test"}
         step += 1
         for kind in kinds:
-            reports[(label, kind)] = train_and_test(
-                prepared, cfg, replace(network_config, kind=kind), train_config, frames=frames, session=session,
-                callback=_scaled(callback, step / n, (step + 1) / n, f"E {E:g}: "),
-            )
+            usable = {r: sum(int(f.finite.sum()) for f in frames.values() if f.role == r) for r in ("train", "validation")}
+            if min(usable.values()) == 0:
+                diverged = [f"{name}: {f.status}" for name, f in frames.items() if f.role in ("train", "validation")]
+                failures[(label, kind)] = f"no usable train/validation frame at E = {E:g} Pa ({', '.join(diverged)})"
+            else:
+                reports[(label, kind)] = train_and_test(
+                    prepared, cfg, replace(network_config, kind=kind), train_config, frames=frames, session=session,
+                    callback=_scaled(callback, step / n, (step + 1) / n, f"E {E:g}: "),
+                )
             step += 1
     return EvaluationResult(session=Path(prepared.path), values=list(values), reports=reports,
-                            identification=identification or {}, timings={"total": time.perf_counter() - t0})
+                            identification=identification or {}, no_network=baselines, failures=failures,
+                            kinds=tuple(kinds), timings={"total": time.perf_counter() - t0})
 
 
 def write_evaluation(result: EvaluationResult, out) -> Path:
