@@ -115,8 +115,9 @@ class CorrectedSequence:
     inference_seconds: float
 
     def save(self, path) -> None:
-        """Write an npz: ``positions`` (F, N, 3) m, ``corrections`` (F, T, 3) m,
-        ``top_nodes`` (T,), ``frame_errors`` (F,) m."""
+        """Write an npz: ``positions`` (F, N, 3) m phantom frame, ``corrections`` (F, T, 3) m
+        of the top-layer nodes (:func:`core.learning.top_layer_nodes` order),
+        ``frame_errors`` (F,) m and ``n_nodes``."""
         grid_n = self.positions.shape[1]
         np.savez_compressed(path, positions=self.positions, corrections=self.corrections,
                             frame_errors=self.frame_errors, n_nodes=np.int64(grid_n))

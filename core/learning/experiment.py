@@ -16,10 +16,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Mapping
 
-import numpy as np
-
 from core.learning.apply import CorrectedSequence, correct_offline, replay_in_loop
-from core.learning.checkpoint import Checkpoint, replay_settings, save_checkpoint
+from core.learning.checkpoint import Checkpoint, replay_settings
 from core.learning.config import LearningError, NetworkConfig, TrainConfig
 from core.learning.data import SequenceFrames, build_frames
 from core.learning.train import TrainResult, train_correction

@@ -20,7 +20,7 @@ import torch
 
 from core.learning.config import LearningError, NetworkConfig, TrainConfig
 from core.learning.data import SequenceFrames, top_layer_nodes
-from core.learning.loss import chamfer_loss, supersample_matrix
+from core.learning.loss import chamfer_loss, point_to_mesh_distances_torch, supersample_matrix
 from core.learning.networks import CorrectionNetwork, build_network
 
 __all__ = ["TrainResult", "FrameSet", "train_correction", "torch_settings"]
@@ -161,8 +161,6 @@ def _evaluate(net, data: FrameSet, lm: _LossModel, samples, batch: int, correct:
             pts, mask = samples[b0 // batch]
             corr = net(data.positions[idx], data.poses[idx]) if correct else None
             s = lm.surface(data.positions[idx], corr)
-            from core.learning.loss import point_to_mesh_distances_torch
-
             d = point_to_mesh_distances_torch(pts, s)
             total += float((d * mask).sum())
             n += int(mask.sum())

@@ -1,6 +1,5 @@
 """Checkpoints: a write-then-read round trip gives identical outputs and metadata."""
 
-import numpy as np
 import pytest
 import torch
 

@@ -3,7 +3,6 @@
 import json
 
 import pytest
-import torch
 
 from app.cli import main
 from core.learning import load_checkpoint
