@@ -94,7 +94,10 @@ def test_health_config_docs_and_job_types(client):
     cfg = client.get("/api/config").json()
     assert cfg["viewer_port"] > 0 and cfg["scheduler"] == "local cluster"
     types = {t["name"]: t for t in client.get("/api/job-types").json()}
-    assert {"generate", "replay", "sweep", "fit"} <= set(types)
+    assert {"generate", "replay", "sweep", "fit", "diagnose"} <= set(types)
+    assert types["diagnose"]["needs_session"]
+    bad = client.post("/api/jobs", json={"type": "diagnose", "params": {"session_id": 1, "grid": [13, 5]}})
+    assert bad.status_code == 422
     assert types["sweep"]["needs_session"] and not types["generate"]["needs_session"]
     assert {"e_min", "e_max", "per_decade", "youngs", "refine"} <= set(types["sweep"]["params_schema"]["properties"])
     spec = client.get("/openapi.json").json()

@@ -68,3 +68,20 @@ def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
     assert lo <= truth <= hi and lo <= fit.youngs_modulus <= hi and hi / lo < 1.5
     blo, bhi = fit.bootstrap_interval
     assert lo <= blo and bhi <= hi  # the calibration term only widens
+
+
+def test_only_force_gravity_or_a_fixed_foundation_set_a_scale_for_E():
+    """Structural identifiability: scaling E scales every quasi-static stress, so only a
+    measured force, a body force or a foundation of fixed stiffness can pin E."""
+    from core.identification.fit import _structurally_identifiable
+
+    def trial(*effects):
+        return Trial(sequence="", youngs_modulus=1.0, effects=effects)
+
+    assert not _structurally_identifiable(trial(), use_force=False)
+    assert _structurally_identifiable(trial(), use_force=True)
+    assert _structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, -9.81]}), use_force=False)
+    assert not _structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, 0]}), use_force=False)
+    assert _structurally_identifiable(trial({"kind": "base_compliance", "stiffness": 1e5}), use_force=False)
+    for kind in ("friction", "viscoelasticity", "inclusion", "probe_radius", "time_offset", "kinematic_offset"):
+        assert not _structurally_identifiable(trial({"kind": kind}), use_force=False)

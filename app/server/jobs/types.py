@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from app.server.jobs.context import JobContext
 from app.server.jobs.registry import JobType, Registry
 
-__all__ = ["GenerateParams", "ReplayParams", "SweepParams", "FitParams", "default_registry"]
+__all__ = ["GenerateParams", "ReplayParams", "SweepParams", "FitParams", "DiagnoseParams", "default_registry"]
 
 Grid = Annotated[list[Annotated[int, Field(ge=2, le=64)]], Field(min_length=3, max_length=3)]
 
@@ -95,6 +95,15 @@ class FitParams(_ModelParams):
 
     use_force: Literal["auto", "yes", "no"] = "auto"
     refine_mesh: bool = True
+
+
+class DiagnoseParams(_Strict):
+    """Name what the base model lacks, extend it, measure the gain (``core.diagnosis``)."""
+
+    session_id: int = Field(description="id of a registered session")
+    grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="grid of the signatures and fits")
+    fit_youngs: bool = Field(True, description="fit E with the claimed causes")
+    refine_mesh: bool = Field(True, description="fit E on the refined grid too")
 
 
 def _replay_config(p: _ModelParams, youngs: float = 5000.0):
@@ -182,11 +191,26 @@ def run_fit(p: FitParams, ctx: JobContext) -> dict:
     return summary
 
 
+def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
+    from core.diagnosis import DiagnosisConfig, diagnose_prepared, write_diagnosis
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    prepared = prepare_session(ctx.session_path, ReplayConfig(grid=tuple(p.grid)), picked=ctx.picked, callback=ctx.scaled(0.0, 0.1))
+    config = DiagnosisConfig(grid=tuple(p.grid), fit_youngs=p.fit_youngs, refine_mesh=p.refine_mesh)
+    with ctx.executor() as ex:
+        diag = diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.1, 0.98))
+    write_diagnosis(diag, ctx.artifact_dir)
+    summary = diag.to_json()
+    summary["plot"] = "residual_maps.png"
+    return summary
+
+
 def default_registry() -> Registry:
-    """The job types of this release: generate, replay, sweep, fit."""
+    """The job types of this release: generate, replay, sweep, fit, diagnose."""
     return Registry([
         JobType("generate", GenerateParams, run_generate, "synthetic session from the virtual lab"),
         JobType("replay", ReplayParams, run_replay, "replay a session, paper's error, 3D view"),
         JobType("sweep", SweepParams, run_sweep, "grid search over Young's modulus (Tables 1-2)"),
         JobType("fit", FitParams, run_fit, "fit Young's modulus with a 95 % interval"),
+        JobType("diagnose", DiagnoseParams, run_diagnose, "name what the simulation lacks and what fixing it gains"),
     ])

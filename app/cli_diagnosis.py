@@ -1,0 +1,47 @@
+"""``tissuetwin diagnose``: what the simulation gets wrong, why, and what the fix is worth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def cmd_diagnose(args) -> int:
+    from rich.console import Console
+
+    from app.cli import _progress
+    from core.diagnosis import DiagnosisConfig, diagnose, write_diagnosis
+    from core.identification import executor
+
+    config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement)
+    with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
+        diag = diagnose(args.session, config, executor=ex, callback=cb)
+    out = write_diagnosis(diag, args.out)
+    console = Console()
+    if diag.causes:
+        for c in diag.causes:
+            console.print(f"cause: [bold]{c.kind}[/bold] {c.parameters} (confidence {c.confidence:.2f}, test gain {100 * (c.gain or 0):.1f} %)")
+    else:
+        console.print("[bold]no effect found[/bold] beyond noise and model-form error")
+    for group in diag.confounded:
+        console.print(f"confounded, not picked: {' / '.join(group)}")
+    lo, hi = diag.gain_interval
+    console.print(
+        f"test error: base {diag.baseline_test_error * 1e3:.3f} mm, extended {diag.extended_test_error * 1e3:.3f} mm "
+        f"(gain {100 * diag.extended_gain:.1f} %, 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); noise floor {diag.noise_floor * 1e3:.3f} mm"
+    )
+    print(f"{diag.simulations} simulations in {diag.timings['total']:.0f} s; wrote {out}/diagnosis.json and {out}/report.md")
+    return 0
+
+
+def register(sub) -> None:
+    """Add the ``diagnose`` subcommand to the ``tissuetwin`` parser's subparsers."""
+    from app.cli import _add_execution_options
+
+    p = sub.add_parser("diagnose", help="name what the simulation lacks, extend the model, measure the gain")
+    p.add_argument("session")
+    p.add_argument("--out", required=True)
+    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="replay grid (default 13 5 5)")
+    p.add_argument("--no-youngs", action="store_true", help="keep E at 5e3 Pa instead of fitting it with the claimed causes")
+    p.add_argument("--no-mesh-refinement", action="store_true", help="fit E on the replay grid only")
+    _add_execution_options(p)
+    p.set_defaults(func=cmd_diagnose)

@@ -1,0 +1,163 @@
+"""diagnosis.json (SESSION_FORMAT.md contract) and a Markdown report with figures."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from core.diagnosis.engine import Diagnosis
+
+__all__ = ["write_diagnosis"]
+
+
+def _mm(v) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v * 1e3:.3f}"
+
+
+def _maps(diag: Diagnosis, out: Path) -> str:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lay = diag.layout
+    ext = [0, diag.layout.size[0] * 1e3, 0, diag.layout.size[1] * 1e3]
+
+    def mean_map(runs, names):
+        s = np.zeros(lay.n_bins)
+        c = np.zeros(lay.n_bins)
+        for n in names:
+            r = runs[n]
+            has = r.field != 0
+            s += np.where(has, r.field, 0).sum(axis=0)
+            c += has.sum(axis=0)
+        return (s / np.maximum(c, 1)).reshape(lay.bins)
+
+    names = [n for n in diag.extended_fields if n in diag.base_fields]
+    base = mean_map(diag.base_fields, names) * 1e3
+    extm = mean_map(diag.extended_fields, names) * 1e3
+    sysm = np.array(diag.summary["systematic_rms_map_m"]) * 1e3
+    lim = max(float(np.abs(base).max()), 1e-3)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.4), constrained_layout=True)
+    for ax, m, title, cmap, vmin in (
+        (axes[0], base, "base model: mean signed residual (mm)", "coolwarm", -lim),
+        (axes[1], extm, "extended model: mean signed residual (mm)", "coolwarm", -lim),
+        (axes[2], sysm, "base model: systematic RMS beyond noise (mm)", "viridis", 0.0),
+    ):
+        im = ax.imshow(m.T, origin="lower", extent=ext, cmap=cmap, vmin=vmin, vmax=lim if vmin < 0 else None, aspect="equal")
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("y (mm)")
+        fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.savefig(out / "residual_maps.png", dpi=110)
+    plt.close(fig)
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.2), constrained_layout=True)
+    for ax, key, title in ((axes[0], "by_phase", "when"), (axes[1], "by_distance_from_probe", "where")):
+        tab = diag.summary[key]
+        labels = list(tab)
+        sysv = [(tab[k]["systematic_rms_m"] or 0) * 1e3 for k in labels]
+        totv = [(tab[k]["total_rms_m"] or 0) * 1e3 for k in labels]
+        x = np.arange(len(labels))
+        ax.bar(x - 0.2, totv, 0.4, label="total RMS of bin means")
+        ax.bar(x + 0.2, sysv, 0.4, label="systematic (beyond noise)")
+        ax.set_xticks(x, labels, fontsize=8)
+        ax.set_ylabel("mm")
+        ax.set_title(f"base model residual: {title}", fontsize=9)
+        ax.legend(fontsize=7)
+    fig.savefig(out / "residual_when_where.png", dpi=110)
+    plt.close(fig)
+
+    rounds = sorted({c.round for c in diag.candidates})
+    fig, ax = plt.subplots(figsize=(9, 3.2), constrained_layout=True)
+    kinds = list(dict.fromkeys(c.kind for c in diag.candidates))
+    width = 0.8 / max(len(rounds), 1)
+    for j, rnd in enumerate(rounds):
+        vals = [next((max(c.delta_chi2, 1.0) for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
+        ax.bar(np.arange(len(kinds)) + j * width, vals, width, label=f"round {rnd}")
+    n_val = diag.summary.get("validation_bin_frames", 0)
+    ax.axhline(max(diag.config.min_delta_chi2, diag.config.min_gain_per_bin * n_val), color="k", ls="--", lw=1, label="claim threshold")
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(len(kinds)) + 0.4 - width / 2, kinds, rotation=20, fontsize=8)
+    ax.set_ylabel("validation chi2 drop")
+    ax.legend(fontsize=7)
+    ax.set_title("evidence per candidate cause", fontsize=9)
+    fig.savefig(out / "evidence.png", dpi=110)
+    plt.close(fig)
+    return "residual_maps.png"
+
+
+def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
+    """Write ``diagnosis.json``, ``report.md`` and its PNG figures into ``out``.
+
+    Raises:
+        OSError: the folder cannot be written.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = diag.to_json()
+    (out / "diagnosis.json").write_text(json.dumps(data, indent=2, default=float))
+    _maps(diag, out)
+    E = diag.youngs
+    lines = [
+        f"# Diagnosis of `{diag.session}`",
+        "",
+        "## What is wrong",
+        "",
+        f"Base model (the paper's: {diag.config.law}, {'x'.join(map(str, diag.config.grid))} grid, no effects): "
+        f"test error **{_mm(diag.baseline_test_error)} mm** against a noise floor of {_mm(diag.noise_floor)} mm "
+        f"(rest frames against the rest mesh). Point noise of the signed top residual, from the scatter inside "
+        f"bins: {_mm(diag.noise_sigma)} mm. Systematic share of the residual variance of bin means: "
+        f"{100 * diag.summary['systematic_fraction_of_variance']:.0f} %.",
+        "",
+        "![residual maps](residual_maps.png)",
+        "",
+        "![when and where](residual_when_where.png)",
+        "",
+        "| when | systematic RMS (mm) | total RMS (mm) | bin-frames |",
+        "|---|---|---|---|",
+    ]
+    for k, v in diag.summary["by_phase"].items():
+        lines.append(f"| {k} | {_mm(v['systematic_rms_m'])} | {_mm(v['total_rms_m'])} | {v['bin_frames']} |")
+    lines += ["", "| where | systematic RMS (mm) | total RMS (mm) | bin-frames |", "|---|---|---|---|"]
+    for k, v in diag.summary["by_distance_from_probe"].items():
+        lines.append(f"| {k} | {_mm(v['systematic_rms_m'])} | {_mm(v['total_rms_m'])} | {v['bin_frames']} |")
+    lines += ["", "## Why", ""]
+    if diag.causes:
+        lines.append("Claimed causes, most important first:")
+        lines.append("")
+        lines.append("| cause | parameters | confidence | test error (mm) | gain |")
+        lines.append("|---|---|---|---|---|")
+        for c in diag.causes:
+            lines.append(f"| {c.kind} | `{json.dumps(c.parameters)}` | {c.confidence:.2f} | {_mm(c.test_error)} | {100 * (c.gain or 0):.1f} % |")
+        unid = [f"{c.kind}.{k}" for c in diag.causes for k, ok in c.identifiable.items() if not ok]
+        if unid:
+            lines += ["", "Not identifiable from these data (95 % interval too wide): " + ", ".join(unid) + "."]
+    else:
+        lines.append("**No effect found**: no candidate explains enough of the validation residual beyond noise "
+                     "and model-form error to pass the thresholds calibrated on sessions without effects.")
+    if diag.confounded:
+        lines += ["", "Confounded (they explain the same residual about equally well; none is picked): "
+                  + "; ".join(" / ".join(g) for g in diag.confounded) + "."]
+    lines += ["", "![evidence](evidence.png)", "",
+              "| round | candidate | validation chi2 drop | share of chi2 removed | confidence | claimed |", "|---|---|---|---|---|---|"]
+    for c in diag.candidates:
+        lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2:.0f} | {100 * c.explained:.0f} % | {c.confidence:.2f} | {'yes' if c.claimed else ''} |")
+    lines += ["", "## What the fix is worth", ""]
+    lo, hi = diag.gain_interval
+    lines.append(
+        f"Extended model ({', '.join(diag.extended_kinds) or 'nothing added'}): test error {_mm(diag.extended_test_error)} mm, "
+        f"gain {100 * diag.extended_gain:.1f} % (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %, frame-block bootstrap); "
+        f"{_mm(diag.extended_test_error - diag.noise_floor)} mm above the noise floor remains."
+    )
+    if E.get("identifiable"):
+        a, b = E["interval"]
+        lines.append(f"Young's modulus with these causes: {E['value']:.4g} Pa (95 % interval {a:.4g}-{b:.4g} Pa).")
+    else:
+        lines.append(f"Young's modulus: not identifiable. {E.get('reason', '')}")
+    lines += ["", f"{diag.simulations} simulations, {diag.timings['total']:.0f} s.", ""]
+    (out / "report.md").write_text("\n".join(lines))
+    return out
