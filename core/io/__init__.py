@@ -22,6 +22,7 @@ from core.io.session import (
     SessionMeta,
     SessionWriter,
     read_session,
+    read_picked,
     read_truth,
     write_session,
 )
@@ -43,6 +44,7 @@ __all__ = [
     "SessionMeta",
     "SessionWriter",
     "check_ply",
+    "read_picked",
     "read_ply",
     "read_session",
     "read_truth",

@@ -1129,6 +1129,42 @@ def read_truth(path: str | os.PathLike) -> dict | None:
     return obj
 
 
+PICKED_FILE = Path("calibration") / "picked.json"
+"""Project-private extra of a session folder: point pairs a user picked to initialise
+the camera's ICP (written by the workbench; not part of SESSION_FORMAT.md)."""
+
+
+def read_picked(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None:
+    """Accepted picked point pairs of a session (``calibration/picked.json``), or None.
+
+    Returns:
+        (points_camera (K, 3), points_phantom (K, 3)) float64, m, K >= 3, in the camera
+        and phantom frames.
+
+    Raises:
+        SessionFormatError: the file exists but is not a valid ``tissuetwin-picked/1``.
+    """
+    p = Path(path) / PICKED_FILE
+    if not p.is_file():
+        return None
+    try:
+        obj = json.loads(p.read_text(encoding="utf-8-sig"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SessionFormatError(p, f"not valid JSON ({exc})") from exc
+    if not isinstance(obj, dict) or obj.get("format") != "tissuetwin-picked/1":
+        raise SessionFormatError(p, "expected a JSON object with \"format\": \"tissuetwin-picked/1\"")
+    try:
+        cam = np.asarray(obj["points_camera"], dtype=np.float64)
+        pha = np.asarray(obj["points_phantom"], dtype=np.float64)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise SessionFormatError(p, f"points_camera and points_phantom must be lists of [x, y, z] ({exc})") from exc
+    if cam.ndim != 2 or cam.shape[1:] != (3,) or cam.shape != pha.shape or cam.shape[0] < 3:
+        raise SessionFormatError(p, f"need K >= 3 matching [x, y, z] pairs, got {cam.shape} and {pha.shape}")
+    if not (np.all(np.isfinite(cam)) and np.all(np.isfinite(pha))):
+        raise SessionFormatError(p, "picked points must be finite")
+    return cam, pha
+
+
 # --------------------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------------------

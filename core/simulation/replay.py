@@ -18,7 +18,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from core.errors import SessionFormatError
-from core.io import Session, read_session
+from core.io import Session, read_picked, read_session
 from core.registration import calibrate_camera, calibrate_robot, clean_cloud, instrument_hints, probe_pose_phantom
 from core.simulation.effects import Effect
 from core.simulation.mesh import box_mesh
@@ -246,12 +246,17 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
     Args:
         session: a read session.
         picked: optional (points_camera (K, 3), points_phantom (K, 3)), K >= 3, to
-            initialise ICP from picked point pairs instead of automatically.
+            initialise ICP from picked point pairs instead of automatically. When None,
+            pairs accepted in the workbench (``calibration/picked.json``) are used if
+            the session has them.
 
     Raises:
         RegistrationError: a registration that does not fit.
+        SessionFormatError: a malformed ``calibration/picked.json``.
     """
     meta = session.meta
+    if picked is None:
+        picked = read_picked(session.path)
     robot = calibrate_robot(session.corners, meta.phantom.size, meta.probe.radius)
     reference = session.reference_cloud()
     hints = []
