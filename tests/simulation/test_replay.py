@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from core.io import read_session
