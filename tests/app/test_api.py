@@ -94,7 +94,10 @@ def test_health_config_docs_and_job_types(client):
     cfg = client.get("/api/config").json()
     assert cfg["viewer_port"] > 0 and cfg["scheduler"] == "local cluster"
     types = {t["name"]: t for t in client.get("/api/job-types").json()}
-    assert {"generate", "replay", "sweep", "fit", "diagnose"} <= set(types)
+    assert {"generate", "replay", "sweep", "fit", "diagnose", "train", "evaluate"} <= set(types)
+    assert types["train"]["needs_session"] and types["evaluate"]["needs_session"]
+    assert {"model", "youngs_modulus", "widths", "epochs", "patience"} <= set(types["train"]["params_schema"]["properties"])
+    assert {"identified", "stiff_factor", "models"} <= set(types["evaluate"]["params_schema"]["properties"])
     assert types["diagnose"]["needs_session"]
     bad = client.post("/api/jobs", json={"type": "diagnose", "params": {"session_id": 1, "grid": [13, 5]}})
     assert bad.status_code == 422
@@ -179,6 +182,14 @@ def test_upload_zip_registers_a_copy_and_refuses_zip_slip_and_size(client, small
     ({"type": "replay", "params": {"session_id": 0, "poisson_ratio": 0.5}}, 422),
     ({"type": "replay", "params": {"session_id": 0, "effects": [{"kind": "magic"}]}}, 422),
     ({"type": "replay", "params": {"session_id": 0, "typo": 1}}, 422),
+    ({"type": "train", "params": {"session_id": 0, "model": "4d"}}, 422),
+    ({"type": "train", "params": {"session_id": 0, "widths": [8, 16]}}, 422),
+    ({"type": "train", "params": {"session_id": 0, "epochs": 0}}, 422),
+    ({"type": "train", "params": {"session_id": 0, "learning_rate": -1e-3}}, 422),
+    ({"type": "evaluate", "params": {"session_id": 0, "models": []}}, 422),
+    ({"type": "evaluate", "params": {"session_id": 0, "models": ["2d", "5d"]}}, 422),
+    ({"type": "evaluate", "params": {"session_id": 0, "stiff_factor": 0.5}}, 422),
+    ({"type": "evaluate", "params": {"session_id": 0, "identified": 0}}, 422),
     ({"type": "generate", "params": {"name": "../evil"}}, 422),
     ({"type": "generate", "params": {"preset": "huge"}}, 422),
 ])
@@ -247,6 +258,13 @@ def test_failed_job_keeps_reason_and_traceback(client, session_id):
     assert done["status"] == "failed"
     assert "no-such-sequence" in done["error"] and "SessionFormatError" in done["error"]
     assert "prepare_session" in done["traceback"]
+
+
+def test_train_job_without_a_test_sequence_fails_with_the_reason(client, session_id):
+    job = submit(client, "train", session_id=session_id, sequences=["seq02"], widths=[4, 8, 8], epochs=1)
+    done = wait(client, job["id"])
+    assert done["status"] == "failed"
+    assert "LearningError" in done["error"] and "missing role(s) ['test', 'validation']" in done["error"]
 
 
 def test_cancel_a_running_sweep(client, session_id):

@@ -16,7 +16,8 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 from app.server.jobs.context import JobContext
 from app.server.jobs.registry import JobType, Registry
 
-__all__ = ["GenerateParams", "ReplayParams", "SweepParams", "FitParams", "DiagnoseParams", "default_registry"]
+__all__ = ["GenerateParams", "ReplayParams", "SweepParams", "FitParams", "DiagnoseParams", "TrainParams",
+           "EvaluateParams", "default_registry"]
 
 Grid = Annotated[list[Annotated[int, Field(ge=2, le=64)]], Field(min_length=3, max_length=3)]
 
@@ -104,6 +105,50 @@ class DiagnoseParams(_Strict):
     grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="grid of the signatures and fits")
     fit_youngs: bool = Field(True, description="fit E with the claimed causes")
     refine_mesh: bool = Field(True, description="fit E on the refined grid too")
+
+
+class _LearningParams(_ModelParams):
+    """How the correction network is shaped and trained (``core.learning.NetworkConfig`` /
+    ``TrainConfig``; defaults are the paper's and the CLI's)."""
+
+    widths: Annotated[list[Annotated[int, Field(ge=1, le=512)]], Field(min_length=3, max_length=3)] = Field(
+        default_factory=lambda: [64, 128, 256], description="features of the 3 encoder blocks (paper: 64 128 256)")
+    pose: Literal["position_quaternion", "position"] = "position_quaternion"
+    epochs: int = Field(40, ge=1, le=1000, description="maximum epochs (early stopping on validation)")
+    patience: int = Field(5, ge=1, le=1000, description="epochs without a better validation loss before stopping")
+    batch_size: int = Field(16, ge=1, le=4096, description="frames per Adam step")
+    learning_rate: float = Field(1e-3, gt=0, le=1.0, description="Adam step size")
+    max_points: int = Field(1024, ge=1, le=1_000_000, description="measured points per frame in the loss")
+    seed: int = Field(0, ge=0)
+    threads: int = Field(1, ge=1, le=64, description="torch threads on the worker (one per worker process)")
+
+    def network_config(self, kind: str):
+        from core.learning import NetworkConfig
+
+        return NetworkConfig(kind=kind, widths=tuple(self.widths), pose=self.pose)
+
+    def train_config(self):
+        from core.learning import TrainConfig
+
+        return TrainConfig(max_epochs=self.epochs, patience=self.patience, batch_size=self.batch_size,
+                           learning_rate=self.learning_rate, max_points=self.max_points, seed=self.seed,
+                           threads=self.threads)
+
+
+class TrainParams(_LearningParams):
+    """Train the 2D or 3D correction network at one E and test it (Wu et al. 2020, Sec. 3.3)."""
+
+    model: Literal["2d", "3d"] = Field("2d", description="2D UNet on the top layer or 3D UNet on the grid")
+    youngs_modulus: float = Field(5000.0, gt=0, le=1e9, description="E of the simulation the network corrects, Pa")
+
+
+class EvaluateParams(_LearningParams):
+    """Table 3 of Wu et al. 2020: the networks at the identified E, a too-stiff E and 10 Pa."""
+
+    identified: float | None = Field(None, gt=0, le=1e9, description="identified E, Pa (default: fit it on the train sequences)")
+    stiff_factor: float = Field(2.0, gt=1.0, le=1e3, description="too-stiff E = factor x identified E")
+    models: Annotated[list[Literal["2d", "3d"]], Field(min_length=1, max_length=2)] = Field(
+        default_factory=lambda: ["2d", "3d"], description="networks to train at each E")
 
 
 def _replay_config(p: _ModelParams, youngs: float = 5000.0):
@@ -205,12 +250,80 @@ def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
     return summary
 
 
+def _prepare_learning(p: _LearningParams, ctx: JobContext, hi: float, youngs: float = 5000.0):
+    """Read and prepare the session; the learned correction needs train, validation and test sequences."""
+    from core.io import read_session
+    from core.learning import LearningError
+    from core.simulation.replay import prepare_session
+
+    session = read_session(ctx.session_path)
+    prepared = prepare_session(session, _replay_config(p, youngs), picked=ctx.picked, callback=ctx.scaled(0.0, hi))
+    missing = {"train", "validation", "test"} - {s.role for s in prepared.sequences.values()}
+    if missing:
+        raise LearningError(f"{ctx.session_path / 'session.json'}: the learned correction needs train, validation "
+                            f"and test sequences; missing role(s) {sorted(missing)}")
+    return session, prepared
+
+
+def run_train(p: TrainParams, ctx: JobContext) -> dict:
+    from core.learning import save_checkpoint, train_and_test
+
+    session, prepared = _prepare_learning(p, ctx, 0.05, p.youngs_modulus)
+    config = _replay_config(p, p.youngs_modulus)
+    report = train_and_test(prepared, config, p.network_config(p.model), p.train_config(), session=session,
+                            callback=ctx.scaled(0.05, 0.97))
+    out = ctx.artifact_dir
+    ck_path = save_checkpoint(out / "checkpoint.pt", report.checkpoint.network, session=prepared.path,
+                              replay_config=config, extra={"train": report.training.to_json()})
+    traj = out / "trajectories"
+    traj.mkdir(exist_ok=True)
+    for name in report.in_loop:  # the viewer's "corrected mesh" layer reads these
+        report.in_loop[name].save(traj / f"{name}_in_loop.npz")
+        report.offline[name].save(traj / f"{name}_offline.npz")
+    summary = report.to_json()
+    summary["checkpoint"] = ck_path.name
+    (out / "train.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def run_evaluate(p: EvaluateParams, ctx: JobContext) -> dict:
+    from core.learning import evaluate_networks, write_evaluation
+
+    session, prepared = _prepare_learning(p, ctx, 0.05)
+    if p.identified is not None:
+        E_id = float(p.identified)
+        identification = {"method": "given (identified)", "youngs_modulus": E_id}
+        lo = 0.05
+    else:
+        from core.identification import fit_youngs_modulus
+
+        with ctx.executor() as ex:
+            fit = fit_youngs_modulus(prepared, base=_base_trial(p), executor=ex, refine_mesh=False,
+                                     progress=lambda n, msg: ctx.progress(min(0.05 + 0.15 * n / 25.0, 0.2), f"{n} E values: {msg}"))
+        E_id, lo = float(fit.coarse_value), 0.2
+        identification = {"method": "fit_youngs_modulus on the replay grid (core.identification)",
+                          "youngs_modulus": E_id, "identifiable": fit.identifiable, "reason": fit.reason,
+                          "interval": list(fit.interval) if fit.interval else None}
+        ctx.log(f"identified E = {E_id:.4g} Pa" + ("" if fit.identifiable else f" (not identifiable: {fit.reason})"))
+    values = [("identified", E_id), ("too stiff", E_id * p.stiff_factor), ("10 Pa", 10.0)]
+    kinds = tuple(p.models)
+    result = evaluate_networks(prepared, values, _replay_config(p, E_id), kinds=kinds,
+                               network_config=p.network_config(kinds[0]), train_config=p.train_config(),
+                               identification=identification, session=session, callback=ctx.scaled(lo, 0.98))
+    write_evaluation(result, ctx.artifact_dir)
+    summary = result.to_json()
+    summary["markdown"] = "evaluation.md"
+    return summary
+
+
 def default_registry() -> Registry:
-    """The job types of this release: generate, replay, sweep, fit, diagnose."""
+    """The job types of this release: generate, replay, sweep, fit, diagnose, train, evaluate."""
     return Registry([
         JobType("generate", GenerateParams, run_generate, "synthetic session from the virtual lab"),
         JobType("replay", ReplayParams, run_replay, "replay a session, paper's error, 3D view"),
         JobType("sweep", SweepParams, run_sweep, "grid search over Young's modulus (Tables 1-2)"),
         JobType("fit", FitParams, run_fit, "fit Young's modulus with a 95 % interval"),
         JobType("diagnose", DiagnoseParams, run_diagnose, "name what the simulation lacks and what fixing it gains"),
+        JobType("train", TrainParams, run_train, "train the 2D/3D correction network and test it (Sec. 3.3)"),
+        JobType("evaluate", EvaluateParams, run_evaluate, "Table 3: both networks at the identified E, too stiff, 10 Pa"),
     ])
