@@ -267,6 +267,27 @@ def test_train_job_without_a_test_sequence_fails_with_the_reason(client, session
     assert "LearningError" in done["error"] and "missing role(s) ['test', 'validation']" in done["error"]
 
 
+def test_train_job_writes_losses_checkpoint_and_trajectories(client, session_id):
+    """A tiny network (widths 4 8 8, 2 epochs) on one sequence per role: the job's summary,
+    its train.json and the checkpoint agree, and the corrected trajectories have the npz
+    keys core.learning documents."""
+    job = submit(client, "train", session_id=session_id, sequences=["seq00", "seq01", "seq02"], widths=[4, 8, 8],
+                 epochs=2, max_points=128, batch_size=8)
+    done = wait(client, job["id"], timeout=300)
+    assert done["status"] == "done", done["error"]
+    r = done["result"]
+    assert [e["epoch"] for e in r["losses"]] == [1, 2]
+    assert all(e["train_loss"] > 0 and e["validation_loss"] > 0 for e in r["losses"])
+    on_disk = json.loads(client.get(f"/api/jobs/{job['id']}/artifacts/train.json").text)
+    assert on_disk["losses"] == r["losses"] and on_disk["test_error"] == r["test_error"]
+    assert set(r["sequences"]) == {"seq01"}  # the test sequence
+    arts = {a["path"] for a in client.get(f"/api/jobs/{job['id']}/artifacts").json()}
+    assert {"train.json", "checkpoint.pt", "trajectories/seq01_in_loop.npz", "trajectories/seq01_offline.npz"} <= arts
+    npz = np.load(io.BytesIO(client.get(f"/api/jobs/{job['id']}/artifacts/trajectories/seq01_offline.npz").content))
+    F, N = npz["positions"].shape[:2]
+    assert N == 13 * 5 * 5 and npz["corrections"].shape == (F, 13 * 5, 3) and npz["frame_errors"].shape == (F,)
+
+
 def test_cancel_a_running_sweep(client, session_id):
     job = submit(client, "sweep", session_id=session_id, e_min=1e1, e_max=1e6, per_decade=4)  # 21 E x 2 sequences
     wait(client, job["id"], until={"running"} | FINAL)
