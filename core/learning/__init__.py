@@ -7,13 +7,20 @@ Public surface::
     save_checkpoint(path, result.network, session=prepared.path, replay_config=config)
     ck = load_checkpoint(path)
     field = correction_field(ck, frames["seq01"])                       # (F, nx*ny, 3) m
-    corrected = replay_in_loop(ck, prepared, "seq01")                   # the paper's use
+    corrected = replay_in_loop(ck, prepared, "seq01", reference=frames["seq01"])  # the paper's use (anchored)
     report = train_and_test(prepared, config, NetworkConfig(kind="3d"))   # + test errors
 
 Importing this package imports torch.
 """
 
-from core.learning.apply import CorrectedSequence, correct_offline, correction_field, mean_error, replay_in_loop
+from core.learning.apply import (
+    IN_LOOP_MODES,
+    CorrectedSequence,
+    correct_offline,
+    correction_field,
+    mean_error,
+    replay_in_loop,
+)
 from core.learning.checkpoint import CHECKPOINT_FORMAT, Checkpoint, load_checkpoint, save_checkpoint
 from core.learning.config import MODEL_KINDS, LearningError, NetworkConfig, TrainConfig
 from core.learning.data import SequenceFrames, build_frames, frames_from_replay, probe_poses, top_layer_nodes
@@ -28,6 +35,7 @@ __all__ = [
     "correction_field",
     "mean_error",
     "replay_in_loop",
+    "IN_LOOP_MODES",
     "CHECKPOINT_FORMAT",
     "Checkpoint",
     "load_checkpoint",

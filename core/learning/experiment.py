@@ -26,6 +26,13 @@ __all__ = ["TrainReport", "train_and_test", "EvaluationResult", "evaluate_networ
 
 Callback = Callable[[float, str], None]
 
+IN_LOOP_MEANING = (
+    "in-loop (Wu et al. 2020, Sec. 3.3): at the end of every camera frame the top layer is set to the plain "
+    "replay's plus the network's correction of it and the FEM continues from there (anchored: corrections do not "
+    "stack, the observed layer stays within the bound of the plain replay; core.learning.apply)"
+)
+OFFLINE_MEANING = "the plain replay corrected frame by frame; the simulation never sees the correction"
+
 
 def _scaled(callback: Callback | None, lo: float, hi: float, prefix: str = "") -> Callback | None:
     if callback is None:
@@ -91,6 +98,7 @@ class TrainReport:
             "test_error": {k: _num(v) for k, v in te.items()},
             "improvement": _num(_improvement(te["no_network"], te["corrected"])),
             "improvement_offline": _num(_improvement(te["no_network"], te["corrected_offline"])),
+            "meaning": {"corrected": IN_LOOP_MEANING, "corrected_offline": OFFLINE_MEANING},
             "sequences": {
                 name: {
                     "no_network": _num(self.no_network[name][0]),
@@ -152,7 +160,7 @@ def train_and_test(
         f = frames[name]
         no_net[name] = (f.mean_error, int(sum(c.shape[0] for c in f.clouds)))
         offline[name] = correct_offline(ck, f, factor=replay_config.supersample)
-        in_loop[name] = replay_in_loop(ck, prepared, name, config=replay_config, session=session,
+        in_loop[name] = replay_in_loop(ck, prepared, name, config=replay_config, session=session, reference=f,
                                        callback=_scaled(callback, 0.85 + 0.15 * i / len(tests), 0.85 + 0.15 * (i + 1) / len(tests), f"in-loop {name} "))
     return TrainReport(
         kind=network_config.kind, youngs_modulus=float(replay_config.youngs_modulus), training=result, checkpoint=ck,
@@ -213,7 +221,7 @@ class EvaluationResult:
             "format": "tissuetwin-evaluation/1",
             "session": str(self.session),
             "metric": "mean distance (m) from measured test points to the nearest vertex of the 3x super-sampled mesh",
-            "corrected": "in-loop (Wu et al. 2020, Sec. 3.3); *_offline: the uncorrected replay corrected frame by frame",
+            "corrected": IN_LOOP_MEANING + "; *_offline: " + OFFLINE_MEANING,
             "identification": self.identification,
             "youngs_modulus": {label: E for label, E in self.values},
             "rows": [{k: (_num(v) if isinstance(v, float) else v) for k, v in r.items()} for r in self.rows()],
