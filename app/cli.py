@@ -123,7 +123,8 @@ def cmd_replay(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    """Generate the demo session if absent, replay it, and replay the shared sample session."""
+    """Generate the demo session if absent, replay it, and replay the shared sample session;
+    then (unless ``--no-serve``) open the workbench on them, the demo replay run as a job."""
     from core.io import read_session
     from core.lab import generate_session
 
@@ -137,9 +138,17 @@ def cmd_demo(args) -> int:
     config = _replay_config(args)
     _run_replay(session, data / "runs" / "demo-replay", config, f"demo session (E = {config.youngs_modulus:g} Pa)")
     sample = Path(args.sample) if args.sample else None
-    if sample is not None and (sample / "session.json").exists():
+    has_sample = sample is not None and (sample / "session.json").exists()
+    if has_sample:
         _run_replay(sample, data / "runs" / "sample-replay", config, f"{sample} (E = {config.youngs_modulus:g} Pa)")
-    return 0
+    if args.no_serve:
+        return 0
+    from app.cli_serve import serve_demo
+
+    params = {"youngs_modulus": args.youngs, "poisson_ratio": args.poisson, "grid": list(args.grid),
+              "effects": _parse_effects(args.effects), "sequences": args.sequences or None}
+    sessions = [(session, "demo-session")] + ([(sample, "sample-session")] if has_sample else [])
+    return serve_demo(data, sessions, params, host=args.host, port=args.port)
 
 
 @contextmanager
@@ -280,6 +289,10 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="generate (once) and replay the demo session, then the shared sample session")
     p.add_argument("--data", default=str(DEFAULT_DATA), help="data directory (default ./data)")
     p.add_argument("--sample", default=str(Path("..") / "shared" / "sample-session"), help="a session from another tool to replay too")
+    p.add_argument("--no-serve", action="store_true", help="stop after the replays instead of opening the workbench")
+    p.add_argument("--host", default="127.0.0.1", help="workbench bind address (default loopback)")
+    p.add_argument("--port", type=int, default=None,
+                   help="workbench port (default 8000 or TISSUETWIN_PORT); the 3D viewer uses PORT + 1")
     _add_model_options(p)
     p.set_defaults(func=cmd_demo)
     for register in _command_groups():

@@ -1,13 +1,18 @@
 """The README's main command, run as a user would (smoke test)."""
 
+import json
 import os
 import re
+import signal
+import socket
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+FINAL = {"done", "failed", "cancelled", "interrupted"}
 
 
 def _commands() -> list[str]:
@@ -24,15 +29,116 @@ def test_readme_gives_exactly_two_setup_commands():
     assert test_cmd in ci
 
 
+def _free_port() -> int:
+    """A loopback port whose successor (the viewer's) is free too."""
+    for _ in range(50):
+        with socket.socket() as a:
+            a.bind(("127.0.0.1", 0))
+            port = a.getsockname()[1]
+            try:
+                with socket.socket() as b:
+                    b.bind(("127.0.0.1", port + 1))
+            except OSError:
+                continue
+        return port
+    pytest.fail("no pair of free loopback ports")
+
+
+def _get(url: str):
+    """JSON of a GET on loopback, or None while the server does not answer."""
+    import httpx
+
+    try:
+        r = httpx.get(url, timeout=5)
+    except httpx.HTTPError:
+        return None
+    return r.json() if r.status_code == 200 else None
+
+
+def _wait_for(what: str, fn, proc, log: Path, timeout: float):
+    """Poll ``fn`` until it returns something truthy; fail if the command exits first."""
+    deadline = time.monotonic() + timeout
+    while True:
+        value = fn()
+        if value:
+            return value
+        if proc.poll() is not None:
+            pytest.fail(f"the command exited ({proc.returncode}) before {what}:\n{log.read_text()[-4000:]}")
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out waiting for {what}:\n{log.read_text()[-4000:]}")
+        time.sleep(1.0)
+
+
+def _ctrl_c(proc) -> None:
+    """What Ctrl-C in a terminal does to the command: SIGINT to tissuetwin and its Dask
+    workers. The ``sh -c`` wrapper of the test is spared (a non-interactive sh dies of
+    SIGINT at once; the user's interactive shell does not), so its exit status is the
+    command's."""
+    import psutil
+
+    shell = psutil.Process(proc.pid)
+    for p in [shell, *shell.children(recursive=True)]:
+        try:
+            if p.pid != proc.pid or p.name() not in ("sh", "dash", "bash"):  # the shell may have exec'd the command
+                p.send_signal(signal.SIGINT)
+        except psutil.NoSuchProcess:
+            pass
+
+
 @pytest.mark.slow
 def test_readme_main_command_runs(tmp_path):
-    """Runs the README's main command verbatim from the repository root; the demo data
-    go to a temporary folder through TISSUETWIN_DATA so the checkout stays clean."""
+    """Runs the README's main command verbatim from the repository root, as a user would:
+    the demo replays, then the workbench opens on the demo session with its replay job run.
+    The test waits until the dashboard answers on loopback and that job is done (REST),
+    then presses Ctrl-C (SIGINT to the command and its workers, as a terminal does) and
+    checks the command exits cleanly. The demo data go to a temporary folder (TISSUETWIN_DATA) and
+    the workbench to a free port (TISSUETWIN_PORT) so the checkout and port 8000 stay free."""
     main_cmd, _ = _commands()
-    env = dict(os.environ, TISSUETWIN_DATA=str(tmp_path / "data"))
-    proc = subprocess.run(main_cmd, shell=True, cwd=ROOT, env=env, capture_output=True, text=True, timeout=1800)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert (tmp_path / "data" / "runs" / "demo-replay" / "replay.json").exists()
-    if (ROOT.parent / "shared" / "sample-session" / "session.json").exists():
-        assert (tmp_path / "data" / "runs" / "sample-replay" / "replay.json").exists()
-    assert "mean error (mm)" in proc.stdout
+    data = tmp_path / "data"
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    env = dict(os.environ, TISSUETWIN_DATA=str(data), TISSUETWIN_PORT=str(port))
+    log = tmp_path / "demo.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen(main_cmd, shell=True, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT,
+                                text=True, start_new_session=True)
+    try:
+        # setup, the demo session (generated once), two replays, then the server; the timeouts only guard a hang
+        _wait_for("the dashboard", lambda: _get(f"{url}/api/health"), proc, log, timeout=1800)
+        page = httpx_get_text(f"{url}/")
+        assert "Tissue Twin workbench" in page
+        sessions = _wait_for("the demo session registered", lambda: [s for s in _get(f"{url}/api/sessions") or []
+                                                                     if s["name"] == "demo-session"], proc, log, timeout=120)
+        demo_id = sessions[0]["id"]
+        assert Path(sessions[0]["path"]) == (data / "demo-session").resolve()
+        job = _wait_for("the demo replay job done", lambda: [j for j in _get(f"{url}/api/jobs?type=replay") or []
+                                                             if j["session_id"] == demo_id and j["status"] in FINAL],
+                        proc, log, timeout=600)[0]
+        assert job["status"] == "done", job
+        detail = _get(f"{url}/api/jobs/{job['id']}")
+        cli = json.loads((data / "runs" / "demo-replay" / "replay.json").read_text())
+        assert set(detail["result"]["sequences"]) == set(cli["sequences"])
+        for name, seq in cli["sequences"].items():  # the job and the CLI replay the same thing
+            assert detail["result"]["sequences"][name]["mean_error"] == pytest.approx(seq["mean_error"], rel=1e-3)
+        if (ROOT.parent / "shared" / "sample-session" / "session.json").exists():
+            assert (data / "runs" / "sample-replay" / "replay.json").exists()
+            assert any(s["name"] == "sample-session" for s in _get(f"{url}/api/sessions"))
+
+        _ctrl_c(proc)
+        rc = proc.wait(timeout=120)
+        text = log.read_text()
+        assert rc == 0, text[-4000:]
+        assert "mean error (mm)" in text and "workbench stopped" in text
+        assert _get(f"{url}/api/health") is None  # nothing left listening
+    finally:
+        try:  # the command if still running, and whatever of its group is left (Dask workers)
+            os.killpg(proc.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        proc.wait(timeout=30)
+
+
+def httpx_get_text(url: str) -> str:
+    import httpx
+
+    return httpx.get(url, timeout=10, follow_redirects=True).text
