@@ -24,6 +24,17 @@ STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 log = logging.getLogger(__name__)
 
 
+VIEWER_TYPES = ("replay", "train")
+"""Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
+
+
+def viewer_folder(job) -> Path:
+    """The replay run folder of a job the viewer can show: a replay's artifacts, or the
+    train job's ``viewer_run`` (test sequences with the corrected mesh)."""
+    root = Path(job.artifact_dir)
+    return root if job.type == "replay" else root / "viewer_run"
+
+
 def _viewer_callbacks(factory):
     """The callbacks the viewer gets: runs and sessions from the database, arrays from
     run folders, ICP through the calibration service."""
@@ -33,12 +44,15 @@ def _viewer_callbacks(factory):
 
     def runs():
         with factory() as db:
-            q = (select(dbm.JobRecord).where(dbm.JobRecord.type == "replay", dbm.JobRecord.status == dbm.DONE)
+            q = (select(dbm.JobRecord).where(dbm.JobRecord.type.in_(VIEWER_TYPES), dbm.JobRecord.status == dbm.DONE)
                  .order_by(dbm.JobRecord.id.desc()))
             out = []
             for j in db.scalars(q):
+                if not (j.result or {}).get("viewer"):
+                    continue
                 s = db.get(dbm.SessionRecord, j.session_id) if j.session_id else None
-                out.append((j.id, f"replay of {s.name if s else '?'} (E {j.params.get('youngs_modulus', 0):g} Pa)"))
+                what = "replay" if j.type == "replay" else f"{j.params.get('model', '')} network"
+                out.append((j.id, f"{what} of {s.name if s else '?'} (E {j.params.get('youngs_modulus', 0):g} Pa)"))
             return out
 
     def load(run_id: int):
@@ -46,7 +60,7 @@ def _viewer_callbacks(factory):
             j = db.get(dbm.JobRecord, run_id)
             if j is None:
                 raise KeyError(f"no job {run_id}")
-            return load_run(j.artifact_dir, label=f"job {j.id}")
+            return load_run(viewer_folder(j), label=f"job {j.id}")
 
     def sessions():
         with factory() as db:

@@ -556,6 +556,8 @@ class WorkbenchViewer:
                 "sequences": list(self.run.sequences) if self.run else [],
                 "frame": self.frame,
                 "n_frames": seq.n_frames if seq else 0,
+                "layers": ([k for k, has in (("cloud", True), ("fem", True), ("corrected", seq.corrected_positions is not None),
+                                             ("probe", True)) if has] if seq else []),
                 "time": float(seq.times[self.frame]) if seq else None,
                 "playing": self.playing,
                 "first_frame_seconds": self.first_frame_seconds,

@@ -287,6 +287,16 @@ def test_train_job_writes_losses_checkpoint_and_trajectories(client, session_id)
     F, N = npz["positions"].shape[:2]
     assert N == 13 * 5 * 5 and npz["corrections"].shape == (F, 13 * 5, 3) and npz["frame_errors"].shape == (F,)
 
+    # the viewer's corrected-mesh layer: the trajectory the job chose, beside a plain replay of the test sequence
+    mode = r["corrected_shown"]["seq01"]
+    assert mode in ("in_loop", "offline")
+    shown = np.load(io.BytesIO(client.get(f"/api/jobs/{job['id']}/artifacts/viewer_run/corrected/seq01.npz").content))
+    chosen = np.load(io.BytesIO(client.get(f"/api/jobs/{job['id']}/artifacts/trajectories/seq01_{mode}.npz").content))
+    np.testing.assert_array_equal(shown["positions"], chosen["positions"])
+    state = client.post("/api/viewer/show", json={"job_id": job["id"]}).json()
+    assert state["sequence"] == "seq01" and state["n_frames"] == F
+    assert state["layers"] == ["cloud", "fem", "corrected", "probe"]
+
 
 def test_cancel_a_running_sweep(client, session_id):
     job = submit(client, "sweep", session_id=session_id, e_min=1e1, e_max=1e6, per_decade=4)  # 21 E x 2 sequences
@@ -324,6 +334,7 @@ def test_replay_job_and_viewer_routes(client, session_id):
 
     state = client.post("/api/viewer/show", json={"job_id": job["id"]}).json()
     assert state["sequence"] == "seq01" and state["frame"] == 0 and state["n_frames"] == seq["frames"]
+    assert state["layers"] == ["cloud", "fem", "probe"]  # a plain replay has no corrected mesh
     t0 = state["time"]
     state = client.post("/api/viewer/frame", json={"frame": 20}).json()
     assert state["frame"] == 20 and state["time"] > t0

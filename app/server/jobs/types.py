@@ -283,7 +283,43 @@ def run_train(p: TrainParams, ctx: JobContext) -> dict:
     summary = report.to_json()
     summary["checkpoint"] = ck_path.name
     (out / "train.json").write_text(json.dumps(summary, indent=2))
+    ctx.progress(0.98, "corrected meshes for the viewer")
+    summary["corrected_shown"] = _write_corrected_run(prepared, config, report, out / VIEWER_RUN)
+    summary["viewer"] = True
     return summary
+
+
+VIEWER_RUN = "viewer_run"
+"""Folder of a train job holding a replay run of its test sequences with the network's
+corrected meshes in ``corrected/`` (what :func:`app.viewer.data.load_run` reads)."""
+
+
+def _write_corrected_run(prepared, config, report, folder) -> dict[str, str]:
+    """Replay the test sequences plainly (the raw FEM layer) and store the corrected
+    trajectories beside them: in-loop (the paper's use) where it did not diverge, else
+    offline. Returns {sequence: "in_loop" | "offline"}."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from app.viewer.data import vertex_errors, write_viewer_arrays
+    from core.simulation.replay import replay, write_replay
+
+    tests = list(report.in_loop)
+    result = replay(prepared.path, replace(config, sequences=tuple(tests)), prepared=prepared)
+    write_replay(result, folder)
+    write_viewer_arrays(prepared, result, folder)
+    (folder / "corrected").mkdir(exist_ok=True)
+    shown = {}
+    for name in tests:
+        corrected = report.in_loop[name] if report.in_loop[name].status == "ok" else report.offline[name]
+        positions = corrected.positions
+        assert positions.shape == result.sequences[name].simulation.positions.shape, name  # same camera frames
+        np.savez_compressed(folder / "corrected" / f"{name}.npz", positions=positions,
+                            vertex_error=vertex_errors(positions, config.grid, prepared.sequences[name].clouds, config.supersample),
+                            mode=np.str_(corrected.mode))
+        shown[name] = corrected.mode
+    return shown
 
 
 def run_evaluate(p: EvaluateParams, ctx: JobContext) -> dict:

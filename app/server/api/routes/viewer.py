@@ -32,8 +32,8 @@ def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
     """Load a finished replay job's run (once) and show a sequence."""
     viewer = _need(viewer)
     job = job_svc.get_job(db, body.job_id)
-    if job.type != "replay" or job.status != "done":
-        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replays")
+    if job.status != "done" or not (job.result or {}).get("viewer"):
+        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replay and train jobs")
     viewer.show_run(job.id, body.sequence)
     return viewer.state()
 
