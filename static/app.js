@@ -139,7 +139,7 @@ async function loadJobs() {
     const active = j.status === "queued" || j.status === "running";
     const actions = [
       active ? `<button class="cancel-btn" data-id="${j.id}">cancel</button>` : "",
-      j.type === "replay" && j.status === "done" ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
+      (j.type === "replay" || j.type === "train") && j.status === "done" ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
     ].join(" ");
     return `<tr data-job-id="${j.id}" data-status="${j.status}">
       <td><a href="#" class="job-link" data-id="${j.id}">${j.id}</a></td><td>${j.type}</td><td>${j.session_id ?? ""}</td>
@@ -178,10 +178,25 @@ async function showResult(id) {
       Object.entries(r.sequences || {}).map(([n, s]) => `<tr><td>${n}</td><td>${s.role}</td><td class="num">${s.frames}</td><td>${s.status}</td><td class="num">${mm(s.mean_error)}</td></tr>`).join("") +
       `</tbody></table><p class="muted">noise floor ${mm(r.noise_floor)} mm; camera ICP rms ${mm((r.calibration || {}).camera_rms)} mm</p>
       <button class="view-btn" onclick="showInViewer(${id})">show in 3D viewer</button>`);
+  } else if (j.type === "train" && j.status === "done") {
+    out.push(lossPlot(r.losses || [], r.best_epoch, r.baseline_loss || {}));
+    const te = r.test_error || {};
+    out.push(`<table id="train-table"><thead><tr><th>${esc((r.model || "").toUpperCase())} network, E ${Number(r.youngs_modulus).toPrecision(3)} Pa</th><th>test error (mm)</th><th>improvement</th></tr></thead><tbody>
+      <tr><td>no network</td><td class="num">${mm(te.no_network)}</td><td></td></tr>
+      <tr><td>corrected in the loop</td><td class="num">${mm(te.corrected)}</td><td class="num">${pct(r.improvement)}</td></tr>
+      <tr><td>corrected offline</td><td class="num">${mm(te.corrected_offline)}</td><td class="num">${pct(r.improvement_offline)}</td></tr>
+      </tbody></table><p class="muted">best epoch ${r.best_epoch} of ${(r.losses || []).length}${r.stopped_early ? " (stopped early)" : ""}; cf. Wu et al. 2020, Table 3</p>`);
+    if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the corrected mesh in 3D (${Object.entries(r.corrected_shown || {}).map(([n, m]) => `${esc(n)}: ${m.replace("_", "-")}`).join(", ")})</button>`);
+  } else if (j.type === "evaluate" && j.status === "done") {
+    out.push(evaluationTable(r));
+    for (const [run, rep] of Object.entries(r.runs || {})) out.push(`<h4>${esc(run)}</h4>` + lossPlot(rep.losses || [], rep.best_epoch, rep.baseline_loss || {}));
+  } else if (j.type === "diagnose" && j.status === "done") {
+    out.push(diagnosisSummary(r, id));
   } else if (j.type === "generate" && j.status === "done") {
     out.push(`<p>new session ${r.session_id}: ${esc(r.session)}</p>`);
   }
-  for (const png of arts.filter((a) => a.path.endsWith(".png") && a.path !== "sweep.png")) {
+  const shown = new Set(["sweep.png", ...(j.type === "diagnose" ? DIAGNOSIS_FIGURES.map((f) => f[0]) : [])]);
+  for (const png of arts.filter((a) => a.path.endsWith(".png") && !shown.has(a.path))) {
     out.push(`<img class="plot" src="/api/jobs/${id}/artifacts/${png.path}" alt="${esc(png.path)}">`);
   }
   if (j.error) out.push(`<p class="error">${esc(j.error)}</p>`);
@@ -192,6 +207,93 @@ async function showResult(id) {
   $("#result-body").innerHTML = out.join("");
   $("#result-body").dataset.status = j.status;
   $("#result-body").className = "";
+}
+
+// ---------------------------------------------------------------- plots: training losses, Table 3, diagnosis
+function pct(v) { return v === null || v === undefined ? "N/A" : (v * 100).toFixed(1) + " %"; }
+
+// Train and validation loss (mm) per epoch as an SVG line plot; dashed: the loss without correction.
+function lossPlot(losses, bestEpoch, baseline) {
+  if (!losses.length) return `<p class="muted">no epochs recorded</p>`;
+  const W = 520, H = 260, L = 64, R = 120, T = 14, B = 40;
+  const series = [["train_loss", "train", "#1f5fbf"], ["validation_loss", "validation", "#d95f02"]];
+  const vals = [];
+  for (const e of losses) for (const [k] of series) if (Number.isFinite(e[k])) vals.push(e[k] * 1e3);
+  for (const v of Object.values(baseline)) if (Number.isFinite(v)) vals.push(v * 1e3);
+  let lo = Math.min(...vals), hi = Math.max(...vals);
+  if (!(hi > lo)) { lo -= 0.001; hi += 0.001; }
+  const pad = 0.06 * (hi - lo); lo -= pad; hi += pad;
+  const n = losses.length, e0 = losses[0].epoch, e1 = losses[n - 1].epoch;
+  const x = (ep) => L + (e1 > e0 ? (ep - e0) / (e1 - e0) : 0.5) * (W - L - R);
+  const y = (v) => T + (1 - (v - lo) / (hi - lo)) * (H - T - B);
+  const parts = [`<svg class="loss-plot" data-epochs="${n}" viewBox="0 0 ${W} ${H}" width="${W}" height="${H}" role="img" aria-label="training loss curves">`,
+    `<rect x="${L}" y="${T}" width="${W - L - R}" height="${H - T - B}" fill="none" stroke="#ccd"/>`];
+  for (let i = 0; i <= 4; i++) {
+    const v = lo + (hi - lo) * i / 4;
+    parts.push(`<line x1="${L - 4}" x2="${L}" y1="${y(v)}" y2="${y(v)}" stroke="#888"/><text x="${L - 6}" y="${y(v) + 4}" text-anchor="end" font-size="11">${v.toFixed(4)}</text>`);
+  }
+  const step = Math.max(1, Math.ceil((e1 - e0) / 8));
+  for (let ep = e0; ep <= e1; ep += step) parts.push(`<text x="${x(ep)}" y="${H - B + 16}" text-anchor="middle" font-size="11">${ep}</text>`);
+  parts.push(`<text x="${(L + W - R) / 2}" y="${H - 6}" text-anchor="middle" font-size="12">epoch</text>`,
+    `<text x="14" y="${(T + H - B) / 2}" transform="rotate(-90 14 ${(T + H - B) / 2})" text-anchor="middle" font-size="12">Chamfer loss (mm)</text>`);
+  series.forEach(([k, label, colour], i) => {
+    const pts = losses.filter((e) => Number.isFinite(e[k])).map((e) => `${x(e.epoch).toFixed(1)},${y(e[k] * 1e3).toFixed(1)}`);
+    parts.push(`<polyline class="loss-${label}" points="${pts.join(" ")}" fill="none" stroke="${colour}" stroke-width="2"/>`);
+    for (const p of pts) { const [px, py] = p.split(","); parts.push(`<circle cx="${px}" cy="${py}" r="2.5" fill="${colour}"/>`); }
+    const base = baseline[label];
+    if (Number.isFinite(base)) parts.push(`<line x1="${L}" x2="${W - R}" y1="${y(base * 1e3)}" y2="${y(base * 1e3)}" stroke="${colour}" stroke-dasharray="4 3"/>`);
+    parts.push(`<line x1="${W - R + 8}" x2="${W - R + 26}" y1="${T + 10 + 18 * i}" y2="${T + 10 + 18 * i}" stroke="${colour}" stroke-width="2"/><text x="${W - R + 30}" y="${T + 14 + 18 * i}" font-size="11">${label}</text>`);
+  });
+  parts.push(`<text x="${W - R + 8}" y="${T + 52}" font-size="10" fill="#666">dashed: no network</text>`);
+  if (bestEpoch) parts.push(`<line class="best-epoch" x1="${x(bestEpoch)}" x2="${x(bestEpoch)}" y1="${T}" y2="${H - B}" stroke="#17803d" stroke-dasharray="2 2"/><text x="${x(bestEpoch) - 3}" y="${T + 12}" text-anchor="end" font-size="10" fill="#17803d">best</text>`);
+  parts.push("</svg>");
+  return parts.join("");
+}
+
+function evaluationTable(r) {
+  const kinds = ["2d", "3d"].filter((k) => (r.rows || []).some((row) => k in row));
+  const head = `<tr><th>E (Pa)</th><th>sequence</th><th>no network</th>${kinds.map((k) => `<th>${k.toUpperCase()}</th><th>improvement</th><th>${k.toUpperCase()} offline</th><th>improvement</th>`).join("")}</tr>`;
+  const rows = (r.rows || []).map((row) => `<tr class="${row.sequence === "all test" ? "best" : ""}"><td>${Number(row.youngs_modulus).toPrecision(3)} (${esc(row.label)})</td><td>${esc(row.sequence)}</td><td class="num">${mm(row.no_network)}</td>` +
+    kinds.map((k) => `<td class="num">${mm(row[k])}</td><td class="num">${pct(row[k + "_improvement"])}</td><td class="num">${mm(row[k + "_offline"])}</td><td class="num">${pct(row[k + "_offline_improvement"])}</td>`).join("") + "</tr>").join("");
+  const fails = Object.entries(r.failures || {}).map(([k, v]) => `<li>${esc(k)}: ${esc(v)}</li>`).join("");
+  return `<table id="evaluation-table"><thead>${head}</thead><tbody>${rows}</tbody></table>
+    <p class="muted">mean distance (mm) from the measured test points to the 3x super-sampled mesh (Wu et al. 2020, Table 3); identified E by ${esc((r.identification || {}).method)}</p>` +
+    (fails ? `<p>N/A:</p><ul>${fails}</ul>` : "");
+}
+
+const DIAGNOSIS_FIGURES = [
+  ["residual_maps.png", "where the base model's signed top-face residual is systematic"],
+  ["residual_when_where.png", "when (phases of the probing) and where (distance from the probe)"],
+  ["evidence.png", "evidence per candidate effect (validation chi-square drop)"],
+];
+
+function diagnosisSummary(r, id) {
+  const causes = r.causes || [];
+  const ext = r.extended || {};
+  const fmt = (v) => (typeof v === "number" ? Number(v).toPrecision(3) : Array.isArray(v) ? `[${v.map(fmt).join(", ")}]` : esc(JSON.stringify(v)));
+  const params = (p) => Object.entries(p || {}).map(([k, v]) => `${esc(k)} = ${fmt(v)}`).join(", ");
+  const ym = r.youngs_modulus || {};
+  const E = typeof ym === "number" ? ym : (ym.value ?? ym.replay_grid_value_used);
+  const eText = E === null || E === undefined ? "?" : `${Number(E).toPrecision(4)} Pa` +
+    (ym.value !== null && ym.value !== undefined && ym.interval ? ` (95 % ${ym.interval.map((v) => Number(v).toPrecision(3)).join(" - ")} Pa)` : ym.reason ? ` (E ${esc(ym.reason)})` : "");
+  const yesNo = (v) => (v && typeof v === "object" ? Object.entries(v).map(([k, b]) => `${esc(k)}: ${b ? "yes" : "no"}`).join(", ") : v ? "yes" : "no");
+  const out = [`<p>base model at E = ${eText}: test error ${mm((r.baseline || {}).test_error)} mm</p>`];
+  if (!causes.length) out.push(`<p id="diagnosis-verdict"><b>No effect found</b>: nothing explains the residual beyond the noise.</p>`);
+  else {
+    out.push(`<table id="causes-table"><thead><tr><th>cause</th><th>parameters</th><th>test error (mm)</th><th>gain</th><th>confidence</th><th>identifiable</th><th>delta chi2</th></tr></thead><tbody>` +
+      causes.map((c) => `<tr><td>${esc(c.kind)}</td><td>${params(c.parameters)}</td><td class="num">${mm(c.test_error)}</td><td class="num">${pct(c.gain)}</td>
+        <td class="num">${c.confidence === null || c.confidence === undefined ? "" : Number(c.confidence).toFixed(2)}</td><td>${yesNo(c.identifiable)}</td>
+        <td class="num">${c.evidence && Number.isFinite(c.evidence.delta_chi2) ? Number(c.evidence.delta_chi2).toPrecision(3) : ""}</td></tr>`).join("") + "</tbody></table>");
+    out.push(`<p id="diagnosis-verdict">extended model (${(ext.kinds || []).map(esc).join(" + ")}): test error ${mm(ext.test_error)} mm, gain ${pct(ext.gain)}` +
+      (ext.gain_interval && ext.gain_interval.length === 2 ? ` (${pct(ext.gain_interval[0])} to ${pct(ext.gain_interval[1])})` : "") + "</p>");
+  }
+  if ((r.confounded || []).length) out.push(`<p>confounded: ${esc(JSON.stringify(r.confounded))}</p>`);
+  const un = r.unexplained || {};
+  out.push(`<p class="muted">unexplained: ${mm(un.test_error)} mm, noise floor ${mm(un.noise_floor)} mm</p>`);
+  for (const [png, caption] of DIAGNOSIS_FIGURES) {
+    out.push(`<figure><img class="plot diagnosis-figure" src="/api/jobs/${id}/artifacts/${png}" alt="${esc(png)}"><figcaption class="muted">${esc(caption)}</figcaption></figure>`);
+  }
+  return out.join("");
 }
 
 // ---------------------------------------------------------------- viewer
@@ -207,7 +309,7 @@ async function setupViewer() {
 async function showInViewer(id) {
   try {
     const st = await api("POST", "/api/viewer/show", { job_id: id });
-    $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
+    $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames, layers ${(st.layers || []).join(", ")} (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
     $("#viewer").scrollIntoView();
   } catch (e) { $("#viewer-status").textContent = e.message; }
 }
@@ -228,6 +330,8 @@ async function init() {
   renderForm();
   await loadJobs();
   await setupViewer();
+  const linked = /^#job-(\d+)$/.exec(location.hash);  // e.g. the demo's link to its replay job
+  if (linked) await showResult(+linked[1]).catch((e) => say($("#launch-message"), e.message, true));
   setInterval(() => loadJobs().catch(() => {}), 1000);
   document.body.dataset.ready = "1";
 }
