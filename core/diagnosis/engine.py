@@ -16,9 +16,11 @@ Method (nested model comparison on the residual field of :mod:`core.diagnosis.fi
    when ``delta_chi2 / N`` passes a threshold calibrated on sessions without effects
    (``DiagnosisConfig``) and ``delta_chi2`` is significant on its own; the best is
    claimed, the others refitted on top of it (greedy forward selection, as orthogonal
-   matching pursuit). Two candidates whose validation gains are within 20 % of each
-   other and whose signature fields correlate above 0.9 are reported as confounded and
-   neither is claimed. Confidence is the bootstrap support of the claim (1 s blocks
+   matching pursuit). When a rival's validation gain is within 20 % of the best's and
+   their field changes correlate above 0.9, each is fitted on top of the other: one that
+   adds significant evidence to the other while the other adds none to it is kept (a
+   kinematic offset's lateral part, which a probe radius cannot mimic); when neither
+   adds to the other they are reported as confounded and neither is claimed. Confidence is the bootstrap support of the claim (1 s blocks
    of validation frames resampled).
 4. **Extension and gain.** The claimed causes are refitted jointly on train; Young's
    modulus is fitted with them (:func:`core.identification.fit_youngs_modulus`, which
@@ -588,12 +590,32 @@ def diagnose_prepared(
             if cos > 0.9:
                 rivals.append(k)
         if rivals:
-            # the largest residual has two explanations: claim neither, and stop, since
-            # the other candidates would be fitted against a residual it dominates
-            # (measured: a foundation claimed after kinematic offset / probe radius tied)
-            confounded.append([best] + rivals)
-            reports += list(round_reports.values())
-            break
+            # nested comparison: does either add significant validation evidence on top of
+            # the other? The one that explains what the other cannot is kept.
+            def extra(kind: str, given: str) -> float:
+                f = _fit_candidate(eng, cands[kind], fixed + [fits[given].effect], sigma2)
+                val = eng.runs([fixed + [fits[given].effect, f.effect]], "validation")[0]
+                base_given = chi_cur - evid[given][0]
+                return base_given - sum(x.sum() for x in _per_frame_chi2(eng, val, sigma2))
+
+            def significant(d: float) -> bool:
+                return d > cfg.min_delta_chi2 and d / n_val > 0.3 * cfg.min_gain_per_bin
+
+            survivors = [best]
+            for k in rivals:
+                best_over_k, k_over_best = extra(best, k), extra(k, best)
+                if significant(k_over_best) and not significant(best_over_k):
+                    survivors = [k]  # the rival explains what the best cannot
+                elif not significant(best_over_k) and not significant(k_over_best):
+                    survivors.append(k)  # neither adds to the other: confounded
+            if len(survivors) > 1:
+                # the largest residual has two explanations: claim neither, and stop, since
+                # the other candidates would be fitted against a residual it dominates
+                # (measured: a foundation claimed after kinematic offset / probe radius tied)
+                confounded.append(survivors)
+                reports += list(round_reports.values())
+                break
+            best = survivors[0]
         round_reports[best] = replace(round_reports[best], claimed=True)
         reports += list(round_reports.values())
         claimed.append((cands[best], fits[best], round_reports[best]))
