@@ -192,6 +192,7 @@ async function showResult(id) {
     for (const [run, rep] of Object.entries(r.runs || {})) out.push(`<h4>${esc(run)}</h4>` + lossPlot(rep.losses || [], rep.best_epoch, rep.baseline_loss || {}));
   } else if (j.type === "diagnose" && j.status === "done") {
     out.push(diagnosisSummary(r, id));
+    if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the extended model's mesh in 3D</button>`);
   } else if (j.type === "generate" && j.status === "done") {
     out.push(`<p>new session ${r.session_id}: ${esc(r.session)}</p>`);
   }

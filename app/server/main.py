@@ -24,13 +24,14 @@ STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 log = logging.getLogger(__name__)
 
 
-VIEWER_TYPES = ("replay", "train")
+VIEWER_TYPES = ("replay", "train", "diagnose")
 """Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
 
 
 def viewer_folder(job) -> Path:
     """The replay run folder of a job the viewer can show: a replay's artifacts, or the
-    train job's ``viewer_run`` (test sequences with the corrected mesh)."""
+    train or diagnose job's ``viewer_run`` (test sequences with the corrected mesh: the
+    network's, or the model extended by the diagnosed effects)."""
     root = Path(job.artifact_dir)
     return root if job.type == "replay" else root / "viewer_run"
 
@@ -51,7 +52,7 @@ def _viewer_callbacks(factory):
                 if not (j.result or {}).get("viewer"):
                     continue
                 s = db.get(dbm.SessionRecord, j.session_id) if j.session_id else None
-                what = "replay" if j.type == "replay" else f"{j.params.get('model', '')} network"
+                what = {"replay": "replay", "diagnose": "extended model"}.get(j.type, f"{j.params.get('model', '')} network")
                 out.append((j.id, f"{what} of {s.name if s else '?'} (E {j.params.get('youngs_modulus', 0):g} Pa)"))
             return out
 

@@ -247,7 +247,41 @@ def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
     write_diagnosis(diag, ctx.artifact_dir)
     summary = diag.to_json()
     summary["plot"] = "residual_maps.png"
+    effects = (summary.get("extended") or {}).get("effects") or []
+    if effects:
+        ctx.progress(0.99, "corrected meshes (the extended model) for the viewer")
+        ym = summary.get("youngs_modulus") or {}
+        E = ym.get("value") or ym.get("replay_grid_value_used") or 5000.0
+        summary["corrected_shown"] = _write_extended_run(prepared, tuple(p.grid), float(E), effects,
+                                                         ctx.artifact_dir / VIEWER_RUN)
+        summary["viewer"] = True
     return summary
+
+
+def _write_extended_run(prepared, grid, youngs: float, effects: list[dict], folder) -> dict[str, str]:
+    """Replay the test sequences with the base model (the raw FEM layer) and with the
+    model extended by the diagnosed effects (the corrected mesh). Returns {sequence: "extended"}."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from app.viewer.data import vertex_errors, write_viewer_arrays
+    from core.simulation import effect_from_dict
+    from core.simulation.replay import ReplayConfig, replay, write_replay
+
+    tests = tuple(n for n, s in prepared.sequences.items() if s.role == "test") or tuple(prepared.sequences)
+    base = ReplayConfig(youngs_modulus=youngs, grid=grid, sequences=tests)
+    result = replay(prepared.path, base, prepared=prepared)
+    write_replay(result, folder)
+    write_viewer_arrays(prepared, result, folder)
+    extended = replay(prepared.path, replace(base, effects=tuple(effect_from_dict(dict(e)) for e in effects)), prepared=prepared)
+    (folder / "corrected").mkdir(exist_ok=True)
+    for name in tests:
+        positions = extended.sequences[name].simulation.positions
+        np.savez_compressed(folder / "corrected" / f"{name}.npz", positions=positions,
+                            vertex_error=vertex_errors(positions, grid, prepared.sequences[name].clouds, base.supersample),
+                            mode=np.str_("extended"))
+    return {name: "extended" for name in tests}
 
 
 def _prepare_learning(p: _LearningParams, ctx: JobContext, hi: float, youngs: float = 5000.0):
