@@ -1117,7 +1117,15 @@ def read_truth(path: str | os.PathLike) -> dict | None:
     Raises:
         SessionFormatError: the file is not a JSON object.
     """
-    p = Path(path) / "truth.json"
+    return _optional_json_object(Path(path) / "truth.json")
+
+
+def _optional_json_object(p: Path) -> dict | None:
+    """The JSON object in file ``p``, or None when it does not exist.
+
+    Raises:
+        SessionFormatError: not valid JSON, or not an object at the top level.
+    """
     if not p.is_file():
         return None
     try:
@@ -1145,14 +1153,11 @@ def read_picked(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray] | None
         SessionFormatError: the file exists but is not a valid ``tissuetwin-picked/1``.
     """
     p = Path(path) / PICKED_FILE
-    if not p.is_file():
+    obj = _optional_json_object(p)
+    if obj is None:
         return None
-    try:
-        obj = json.loads(p.read_text(encoding="utf-8-sig"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise SessionFormatError(p, f"not valid JSON ({exc})") from exc
-    if not isinstance(obj, dict) or obj.get("format") != "tissuetwin-picked/1":
-        raise SessionFormatError(p, "expected a JSON object with \"format\": \"tissuetwin-picked/1\"")
+    if obj.get("format") != "tissuetwin-picked/1":
+        raise SessionFormatError(p, "expected \"format\": \"tissuetwin-picked/1\"")
     try:
         cam = np.asarray(obj["points_camera"], dtype=np.float64)
         pha = np.asarray(obj["points_phantom"], dtype=np.float64)
