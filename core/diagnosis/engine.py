@@ -675,7 +675,7 @@ def diagnose_prepared(
     say(1.0, "done")
     return Diagnosis(
         session=prepared.path, config=cfg, noise_sigma=math.sqrt(sigma2),
-        noise_floor=float(prepared.noise_floor(cfg.grid)), youngs=youngs, baseline_test_error=b_err,
+        noise_floor=float(prepared.noise_floor(cfg.fine_grid or cfg.grid)), youngs=youngs, baseline_test_error=b_err,
         causes=causes, candidates=reports, confounded=confounded,
         extended_kinds=[c.kind for c in causes], extended_effects=ext_effects,
         extended_test_error=e_err, extended_gain=gain, gain_interval=gain_iv,
