@@ -45,7 +45,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from core.diagnosis.candidates import KINDS, Candidate, candidates
-from core.diagnosis.fields import FieldLayout, frame_bins, phase_labels, residual_field
+from core.diagnosis.fields import PHASES, FieldLayout, frame_bins, phase_labels, residual_field
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.fit import fit_youngs_modulus
@@ -156,13 +156,12 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
     sums = None
     if item.paper_error:
         means, _ = frame_errors(sim.positions, t.grid, seq.clouds)
-        sums = np.where(np.isfinite(means), means, np.nan) * n
+        sums = means * n  # NaN where the frame diverged
     return FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres))
 
 
 @dataclass
 class _Fit:
-    kind: str
     x: np.ndarray
     se: np.ndarray
     train_rss: float
@@ -380,7 +379,7 @@ def _fit_candidate(eng: _Engine, cand: Candidate, fixed: list[dict], sigma2: flo
             se = np.sqrt(np.maximum(np.diag(cov), 0.0))
         except np.linalg.LinAlgError:
             pass
-    return _Fit(cand.kind, x, se, _rss(r_x), cand.to_effect(x))
+    return _Fit(x, se, _rss(r_x), cand.to_effect(x))
 
 
 def _identifiable(cand: Candidate, x: np.ndarray, se: np.ndarray) -> dict:
@@ -446,8 +445,6 @@ def _gain_interval(base, ext, blocks, n_boot: int, rng) -> tuple[float, float]:
 def _summary(eng: _Engine, runs: list[FieldRun], sigma2: float, prepared: PreparedSession) -> dict:
     """Where and when the base model is wrong: systematic residual variance (m^2 beyond
     noise) by phase, by distance from the probe and by region of the top face."""
-    from core.diagnosis.fields import PHASES
-
     centres = eng.layout.centres()
     sz = prepared.size[2]
     by_phase = {p: [0.0, 0.0, 0] for p in PHASES}

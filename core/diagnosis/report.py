@@ -17,7 +17,7 @@ def _mm(v) -> str:
     return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v * 1e3:.3f}"
 
 
-def _maps(diag: Diagnosis, out: Path) -> str:
+def _maps(diag: Diagnosis, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,7 +87,6 @@ def _maps(diag: Diagnosis, out: Path) -> str:
     ax.set_title("evidence per candidate cause", fontsize=9)
     fig.savefig(out / "evidence.png", dpi=110)
     plt.close(fig)
-    return "residual_maps.png"
 
 
 def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
