@@ -14,9 +14,9 @@ Accepted picks are stored in the session folder as ``calibration/picked.json``::
      "T_phantom_camera": [[...4x4...]],     # the ICP result when accepted (informative)
      "T_init": [[...]], "rms_init": m, "rms": m, "fitness": f, "accepted_at": ISO time}
 
-Jobs of the workbench pass the pairs to ``prepare_session(picked=...)``, which re-runs
-the same deterministic ICP. The CLI does not read this file yet (a ``core`` change,
-proposed in the workbench's report).
+Jobs of the workbench pass the pairs (read with ``core.io.read_picked``) to
+``prepare_session(picked=...)``, which re-runs the same deterministic ICP; the CLI's
+calibration reads the same file when no pairs are given.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 from app.server.errors import Invalid
+from core.io.session import PICKED_FILE
 
-__all__ = ["PICKED_FILE", "load_picked", "load_calibration", "reference_and_surface", "preview", "accept", "clear"]
+__all__ = ["PICKED_FILE", "load_calibration", "reference_and_surface", "preview", "accept", "clear"]
 
-PICKED_FILE = Path("calibration") / "picked.json"
 
 
 def _pairs(points_camera, points_phantom) -> tuple[np.ndarray, np.ndarray]:
@@ -44,15 +44,6 @@ def _pairs(points_camera, points_phantom) -> tuple[np.ndarray, np.ndarray]:
     if not (np.isfinite(pc).all() and np.isfinite(pp).all()):
         raise Invalid("picked points must be finite")
     return pc, pp
-
-
-def load_picked(session_path: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """The accepted pairs ``(points_camera (K, 3), points_phantom (K, 3))`` m, or None."""
-    f = Path(session_path) / PICKED_FILE
-    if not f.exists():
-        return None
-    obj = json.loads(f.read_text())
-    return np.asarray(obj["points_camera"], float), np.asarray(obj["points_phantom"], float)
 
 
 def load_calibration(session_path: str | Path) -> dict | None:

@@ -11,9 +11,9 @@ from app.server import db as dbm
 from app.server.errors import Conflict, NotFound
 from app.server.jobs.registry import Registry
 from app.server.jobs.runner import JobRunner
-from app.server.services.calibration import load_picked
 from app.server.services.sessions import get_session
 from app.server.settings import Settings
+from core.io import read_picked
 
 __all__ = ["create_job", "list_jobs", "get_job", "cancel_job", "list_artifacts", "artifact_path"]
 
@@ -33,7 +33,7 @@ def create_job(db: DB, settings: Settings, registry: Registry, runner: JobRunner
     if session_id is not None:
         rec = get_session(db, session_id)
         session_path = rec.path
-        pairs = load_picked(rec.path)
+        pairs = read_picked(rec.path)
         picked = None if pairs is None else (pairs[0].tolist(), pairs[1].tolist())
     job = dbm.JobRecord(type=type_name, params=model.model_dump(mode="json"), session_id=session_id, status=dbm.QUEUED)
     db.add(job)
