@@ -170,7 +170,19 @@ class BaseCompliance(Effect):
 
 @dataclass(frozen=True)
 class ProbeRadius(Effect):
-    """The probe's true radius (m) differs from session.json's."""
+    """The probe's true radius (m) differs from session.json's.
+
+    A wrong radius also moved the robot calibration: SESSION_FORMAT.md places each
+    corner touch's sphere centre at the corner plus (0, 0, radius) with the nominal
+    radius, while the touching sphere's centre really was ``radius`` above the corner.
+    Every touch target is then off by the same vertical shift, so the Kabsch fit's
+    robot -> phantom transform is off by exactly that translation, and the calibrated
+    centres sit ``radius - nominal`` below the true ones. The replay therefore moves the
+    path up by ``radius - nominal`` along the phantom's z (the sphere's lowest point
+    stays where the calibration put it) and uses the true radius: what a bigger probe
+    changes is the width of the dent, not its depth. Without this shift a fit of the
+    radius runs the wrong way (measured: 7.5 mm hidden, 4.8 mm fitted).
+    """
 
     kind: ClassVar[str] = "probe_radius"
     radius: float = 0.006
@@ -179,7 +191,7 @@ class ProbeRadius(Effect):
         object.__setattr__(self, "radius", _positive("probe radius", self.radius))
 
     def transform_probe(self, path, radius):
-        return path, self.radius
+        return path.translated(np.array([0.0, 0.0, self.radius - float(radius)])), self.radius
 
 
 @dataclass(frozen=True)

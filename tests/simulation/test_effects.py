@@ -136,7 +136,15 @@ def test_input_side_effects_change_only_the_probe():
     moved = simulate(build_model(mesh, MASS, Material(5000.0), effects=[KinematicOffset((0.001, 0, -0.002))]), path, 0.005, times)
     np.testing.assert_allclose(moved.probe_centres, base.probe_centres + [0.001, 0, -0.002])
     bigger = simulate(build_model(mesh, MASS, Material(5000.0), effects=[ProbeRadius(0.006)]), path, 0.005, times)
-    assert bigger.probe_radius == 0.006 and -bigger.contact_force[1, 2] > -base.contact_force[1, 2]
+    # the calibration placed the centre 1 mm too low: the sphere's lowest point is unchanged
+    np.testing.assert_allclose(bigger.probe_centres, base.probe_centres + [0, 0, 0.001])
+    assert bigger.probe_radius == 0.006
+    # same depth, wider sphere: a larger force (Hertz: F ~ sqrt(R) d^1.5) and a wider dent
+    assert -bigger.contact_force[1, 2] > -base.contact_force[1, 2]
+    top = mesh.top_nodes()
+    ring = top[np.abs(np.linalg.norm(mesh.nodes[top, :2] - SIZE[:2] / 2, axis=1) - 0.008) < 0.004]
+    sink = lambda r: float(np.mean(mesh.nodes[ring, 2] - r.positions[1, ring, 2]))
+    assert sink(bigger) > sink(base) > 0
 
 
 def test_effects_round_trip_through_their_dicts():
