@@ -8,8 +8,33 @@ import threading
 from pathlib import Path
 
 
+def is_loopback(host: str) -> bool:
+    """True if binding ``host`` keeps the server reachable from this machine only
+    (``localhost``, 127.0.0.0/8, ``::1``). ``0.0.0.0``, ``::``, names and other addresses
+    are not."""
+    import ipaddress
+
+    if host.strip("[]").lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def bind_warning(host: str, session_roots=()) -> str | None:
+    """The warning to print when serving on ``host``, or None on loopback."""
+    if is_loopback(host):
+        return None
+    roots = "" if session_roots else (" and any folder the server can read may be registered as a session"
+                                      " (restrict with --session-root)")
+    return (f"warning: serving on {host}, reachable from other machines: the workbench has no "
+            f"authentication{roots}; put it behind an authenticating proxy or use 127.0.0.1")
+
+
 def cmd_serve(args) -> int:
-    """Start uvicorn with the app factory; the viewer listens on ``--viewer-port``."""
+    """Start uvicorn with the app factory; the viewer listens on ``--viewer-port``.
+    Binds ``--host`` (loopback by default) and warns on stderr when that is not loopback."""
     import uvicorn
 
     from app.server.main import create_app
@@ -23,9 +48,12 @@ def cmd_serve(args) -> int:
         overrides["scheduler"] = args.scheduler
     if args.workers is not None:
         overrides["workers"] = args.workers
+    if getattr(args, "session_root", None):
+        overrides["session_roots"] = args.session_root
     settings = Settings(**overrides)
-    if args.host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"warning: serving on {args.host}: the workbench has no authentication", file=sys.stderr)
+    warning = bind_warning(args.host, settings.session_roots)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     print(f"dashboard http://{args.host}:{args.port}/   API docs http://{args.host}:{args.port}/docs   "
           f"data {settings.data_dir}   database {settings.url.split('@')[-1]}", flush=True)
     uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level=args.log_level)
@@ -119,6 +147,9 @@ def serve_demo(data_dir: Path, sessions: list[tuple[Path, str]], replay_params: 
 
     port = demo_port() if port is None else port
     settings = Settings(data_dir=data_dir, viewer_port=port + 1, viewer_host=host)
+    warning = bind_warning(host, settings.session_roots)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     server = uvicorn.Server(uvicorn.Config(create_app(settings), host=host, port=port, log_level="warning"))
     url = f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{port}"
     ready, stop = threading.Event(), threading.Event()
@@ -161,5 +192,8 @@ def register(subparsers) -> None:
     p.add_argument("--data", default=None, help="data directory: database, uploads, job artifacts (default ./data, env TISSUETWIN_DATA)")
     p.add_argument("--scheduler", default=None, help="existing Dask scheduler, e.g. tcp://host:8786 (default: a local cluster; env TISSUETWIN_SCHEDULER)")
     p.add_argument("--workers", type=int, default=None, help="worker processes of the local cluster (default 2)")
+    p.add_argument("--session-root", action="append", default=None, metavar="DIR",
+                   help="only register session folders under DIR (repeatable; default: any folder; "
+                        "env TISSUETWIN_SESSION_ROOTS as a JSON list)")
     p.add_argument("--log-level", default="warning", choices=("critical", "error", "warning", "info", "debug"))
     p.set_defaults(func=cmd_serve)

@@ -2,13 +2,20 @@
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import ValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.middleware.body_limit import MAX_BODY_SIZE_SCOPE_KEY
 
 from core.errors import TissueTwinError
 
-__all__ = ["AppError", "NotFound", "Conflict", "Invalid", "TooLarge", "install_error_handlers"]
+__all__ = ["AppError", "NotFound", "Forbidden", "Conflict", "Invalid", "TooLarge", "install_error_handlers"]
 
 
 class AppError(Exception):
@@ -25,6 +32,12 @@ class NotFound(AppError):
     """No such session, job, artifact or run."""
 
     status = 404
+
+
+class Forbidden(AppError):
+    """A path outside what the server may read (a session folder outside the allowed roots)."""
+
+    status = 403
 
 
 class Conflict(AppError):
@@ -45,10 +58,35 @@ class TooLarge(AppError):
     status = 413
 
 
+def _json_safe(obj: Any) -> Any:
+    """``obj`` made JSON-encodable for an error body: non-finite floats (a ``NaN`` the
+    client sent, echoed as the bad ``input``) become strings, anything else exotic its str."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    if isinstance(obj, dict):
+        return {str(k): _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if obj is None or isinstance(obj, (str, int, float, bool)):
+        return obj
+    try:
+        return _json_safe(jsonable_encoder(obj))
+    except Exception:  # noqa: BLE001 - an error body must always render
+        return str(obj)
+
+
+def _errors(exc: ValidationError | RequestValidationError) -> list:
+    if isinstance(exc, ValidationError):
+        return _json_safe(exc.errors(include_url=False, include_context=False))
+    return _json_safe([{k: v for k, v in e.items() if k not in ("ctx", "url")} for e in exc.errors()])
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Map :class:`AppError` to its status, every ``core`` :class:`TissueTwinError`
     (bad session, failed registration, bad model parameters) and pydantic
-    ``ValidationError`` (job parameters) to 422 with the message."""
+    ``ValidationError`` (job parameters) to 422 with the message, request validation
+    errors to 422 (even when the client sent ``NaN``), and a body over its limit to 413
+    saying the limit. Every error body is ``{"detail": str | list, ...}`` (``api.schemas.ErrorOut``)."""
 
     @app.exception_handler(AppError)
     async def _app_error(_request: Request, exc: AppError):
@@ -61,4 +99,15 @@ def install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ValidationError)
     async def _validation(_request: Request, exc: ValidationError):
         # job parameters are validated against the job type's model inside the service
-        return JSONResponse(status_code=422, content={"detail": exc.errors(include_url=False, include_context=False)})
+        return JSONResponse(status_code=422, content={"detail": _errors(exc)})
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_validation(_request: Request, exc: RequestValidationError):
+        return JSONResponse(status_code=422, content={"detail": _errors(exc)})
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        detail = exc.detail
+        if exc.status_code == 413 and MAX_BODY_SIZE_SCOPE_KEY in request.scope:
+            detail = f"request body larger than {request.scope[MAX_BODY_SIZE_SCOPE_KEY]} bytes"
+        return JSONResponse(status_code=exc.status_code, content={"detail": detail}, headers=exc.headers)

@@ -18,11 +18,14 @@ from app.server.jobs.registry import Registry
 from app.server.jobs.runner import JobRunner
 from app.server.settings import Settings
 
-__all__ = ["create_app", "STATIC_DIR"]
+__all__ = ["create_app", "STATIC_DIR", "UPLOAD_OVERHEAD"]
 
 STATIC_DIR = Path(__file__).resolve().parents[2] / "static"
 log = logging.getLogger(__name__)
 
+
+UPLOAD_OVERHEAD = 64 * 1024
+"""Bytes of multipart framing and form fields allowed on top of ``max_upload_bytes``."""
 
 VIEWER_TYPES = ("replay", "train", "diagnose")
 """Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
@@ -85,7 +88,9 @@ def _viewer_callbacks(factory):
 def create_app(settings: Settings | None = None, registry: Registry | None = None) -> FastAPI:
     """Build the workbench app. Start-up (in the lifespan): create the data folders and
     tables, mark jobs a previous server left behind ``interrupted``, start the Dask
-    runner and (``settings.viewer``) the viser viewer; shut-down stops both.
+    runner and (``settings.viewer``) the viser viewer; shut-down stops both. Request
+    bodies are limited while they stream in: ``settings.max_body_bytes`` for JSON routes,
+    ``settings.max_upload_bytes`` (+ :data:`UPLOAD_OVERHEAD`) for the zip upload.
 
     Args:
         settings: defaults from the environment (:class:`Settings`).
@@ -127,10 +132,13 @@ def create_app(settings: Settings | None = None, registry: Registry | None = Non
         description="Sessions, jobs (generate, replay, sweep, fit) on Dask, artifacts, and the 3D viewer.",
         version="0.1.0",
         lifespan=lifespan,
+        # request bodies are counted while they stream in: 413 as soon as one is too large
+        max_body_size=settings.max_body_bytes,
     )
     install_error_handlers(app)
     for r in (system.router, sessions.router, job_types.router, jobs.router, viewer.router):
         app.include_router(r)
+    app.include_router(sessions.upload_router, max_body_size=settings.max_upload_bytes + UPLOAD_OVERHEAD)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
 
     @app.get("/", include_in_schema=False)

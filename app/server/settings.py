@@ -31,8 +31,16 @@ class Settings(BaseSettings):
     viewer_host: str = "127.0.0.1"
     viewer_port: int = 8081
     """Port of the viser viewer (its own server; the dashboard embeds it in an iframe)."""
-    max_upload_bytes: int = 512 * 1024 * 1024
-    """Largest accepted zip upload (compressed and uncompressed), bytes."""
+    max_upload_bytes: int = Field(512 * 1024 * 1024, ge=1024)
+    """Largest accepted zip upload (compressed and uncompressed), bytes. Enforced while
+    the request streams in (a larger body is cut off with 413 before it is stored)."""
+    max_body_bytes: int = Field(1024 * 1024, ge=1024)
+    """Largest request body of every other route (JSON), bytes (413 beyond)."""
+    session_roots: list[Path] = Field(default_factory=list)
+    """Folders under which ``POST /api/sessions`` may register session folders (after
+    resolving ``..`` and symlinks); empty: any folder the server can read. Uploaded and
+    generated sessions live under ``data_dir`` and are always allowed. From the
+    environment as a JSON list: ``TISSUETWIN_SESSION_ROOTS='["/lab/sessions"]'``."""
     progress_interval: float = 0.25
     """Least time between two progress reports of a job, s (the cancel flag is checked as often)."""
 
@@ -45,8 +53,10 @@ class Settings(BaseSettings):
 
     @property
     def sessions_dir(self) -> Path:
+        """Uploaded sessions, one folder each."""
         return Path(self.data_dir) / "sessions"
 
     @property
     def jobs_dir(self) -> Path:
+        """Job artifacts, ``jobs/<id>/``; generated sessions live in their job's folder."""
         return Path(self.data_dir) / "jobs"

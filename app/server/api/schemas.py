@@ -3,16 +3,44 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any
+import math
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-Point = list[float]
+Point = Annotated[list[Annotated[float, Field(allow_inf_nan=False)]], Field(min_length=3, max_length=3)]
+"""[x, y, z], m, finite."""
+
+MAX_PICKS = 1000
+"""Most picked point pairs in one request."""
+
+
+class ErrorOut(BaseModel):
+    """Every error response: a message naming the file and the problem, or pydantic's
+    list of field errors (422); ``type`` is the domain error's class when there is one."""
+
+    detail: str | list[dict[str, Any]]
+    type: str | None = None
+
+
+_DESCRIPTIONS = {
+    403: "a path outside the folders the server may read",
+    404: "no such session, job, job type, artifact or run",
+    409: "contradicts the current state (registered already, job final already, viewer off)",
+    413: "request body or unpacked zip over the size limit",
+    422: "invalid input: the message names the file and the problem, or the fields",
+}
+
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """``responses=`` for a route: the error statuses it may answer, documented in the
+    OpenAPI spec with :class:`ErrorOut` (422 always: every route validates input)."""
+    return {c: {"model": ErrorOut, "description": _DESCRIPTIONS[c]} for c in sorted({*codes, 422})}
 
 
 class SessionRegister(BaseModel):
-    path: str = Field(description="a session folder on the server's file system")
-    name: str | None = None
+    path: str = Field(min_length=1, max_length=4096, description="a session folder on the server's file system")
+    name: str | None = Field(None, max_length=200)
 
 
 class SessionOut(BaseModel):
@@ -30,13 +58,33 @@ class SessionDetail(SessionOut):
 
 
 class PickedPairs(BaseModel):
-    points_camera: list[Point] = Field(min_length=3, description="K >= 3 points on the reference cloud, m, camera frame")
-    points_phantom: list[Point] = Field(min_length=3, description="the matching K points on the rest surface, m, phantom frame")
+    points_camera: list[Point] = Field(min_length=3, max_length=MAX_PICKS,
+                                       description="K >= 3 points on the reference cloud, m, camera frame")
+    points_phantom: list[Point] = Field(min_length=3, max_length=MAX_PICKS,
+                                        description="the matching K points on the rest surface, m, phantom frame")
+
+
+def _finite(value: Any, where: str) -> None:
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where} is {value}: numbers must be finite")
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _finite(v, f"{where}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _finite(v, f"{where}[{i}]")
 
 
 class JobCreate(BaseModel):
-    type: str = Field(description="a job type name, see GET /api/job-types")
-    params: dict[str, Any] = Field(default_factory=dict)
+    type: str = Field(max_length=50, description="a job type name, see GET /api/job-types")
+    params: dict[str, Any] = Field(default_factory=dict, description="validated against the type's params_schema")
+
+    @field_validator("params")
+    @classmethod
+    def _no_nan(cls, v: dict[str, Any]) -> dict[str, Any]:
+        # JSON has no NaN, but Python's parser accepts it; a stored NaN would break every listing
+        _finite(v, "params")
+        return v
 
 
 class JobOut(BaseModel):
@@ -76,11 +124,11 @@ class JobTypeOut(BaseModel):
 
 class ViewerShow(BaseModel):
     job_id: int
-    sequence: str | None = None
+    sequence: str | None = Field(None, max_length=200)
 
 
 class ViewerFrame(BaseModel):
-    frame: int = Field(ge=0)
+    frame: int = Field(ge=0, le=10**9)
 
 
 class ViewerIcp(BaseModel):

@@ -18,6 +18,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 import traceback as tb_module
@@ -171,7 +172,10 @@ class JobRunner:
                         job.started_at = dbm.utcnow()
                         job.log = _append(job.log, "started")
                 elif kind == "progress":
-                    job.progress, job.message = float(payload[0]), str(payload[1])
+                    fraction = float(payload[0])
+                    if math.isfinite(fraction):
+                        job.progress = min(max(fraction, 0.0), 1.0)
+                    job.message = str(payload[1])
                 elif kind == "log":
                     job.log = _append(job.log, str(payload))
 

@@ -46,10 +46,28 @@ def _pairs(points_camera, points_phantom) -> tuple[np.ndarray, np.ndarray]:
     return pc, pp
 
 
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not a number JSON allows")
+
+
 def load_calibration(session_path: str | Path) -> dict | None:
-    """The stored ``picked.json`` as a dict, or None (automatic initialisation)."""
+    """The stored ``picked.json`` as a dict, or None (automatic initialisation).
+
+    Raises:
+        SessionFormatError: not UTF-8 JSON, not an object, or holding NaN/Infinity.
+    """
+    from core.errors import SessionFormatError
+
     f = Path(session_path) / PICKED_FILE
-    return json.loads(f.read_text()) if f.exists() else None
+    if not f.exists():
+        return None
+    try:
+        obj = json.loads(f.read_text(encoding="utf-8"), parse_constant=_no_constant)
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError is a ValueError
+        raise SessionFormatError(f, f"not valid JSON ({exc})") from exc
+    if not isinstance(obj, dict):
+        raise SessionFormatError(f, f"top level must be a JSON object, got {type(obj).__name__}")
+    return obj
 
 
 def reference_and_surface(session_path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

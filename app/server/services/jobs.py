@@ -41,7 +41,11 @@ def create_job(db: DB, settings: Settings, registry: Registry, runner: JobRunner
     job.artifact_dir = str((settings.jobs_dir / str(job.id)).resolve())
     job.log = ""
     db.commit()
-    runner.submit(job, session_path, picked)
+    try:
+        runner.submit(job, session_path, picked)
+    except Exception as exc:  # noqa: BLE001 - a job the cluster never got must not stay queued forever
+        job.status, job.error, job.finished_at = dbm.FAILED, f"could not submit to Dask: {type(exc).__name__}: {exc}", dbm.utcnow()
+        db.commit()
     return job
 
 
@@ -55,8 +59,8 @@ def list_jobs(db: DB, status: str | None = None, type_name: str | None = None, l
 
 
 def get_job(db: DB, job_id: int) -> dbm.JobRecord:
-    """Raises NotFound."""
-    job = db.get(dbm.JobRecord, job_id)
+    """Raises NotFound (also for ids no database column can hold)."""
+    job = db.get(dbm.JobRecord, job_id) if dbm.valid_id(job_id) else None
     if job is None:
         raise NotFound(f"no job with id {job_id}")
     return job
@@ -79,6 +83,8 @@ def cancel_job(db: DB, runner: JobRunner, job_id: int) -> dbm.JobRecord:
 
 def list_artifacts(job: dbm.JobRecord) -> list[dict]:
     """Files in the job's artifact directory: relative path and size in bytes."""
+    if not job.artifact_dir:  # never a relative "" (that would be the server's working directory)
+        return []
     root = Path(job.artifact_dir)
     if not root.is_dir():
         return []
@@ -93,9 +99,15 @@ def artifact_path(job: dbm.JobRecord, relative: str) -> Path:
         NotFound: missing, a directory, or outside the artifact directory (``..``,
             absolute paths, symlinks leading out).
     """
+    if not job.artifact_dir:
+        raise NotFound(f"job {job.id} has no artifacts")
     root = Path(job.artifact_dir).resolve()
-    target = (root / relative).resolve()
-    if not target.is_relative_to(root) or not target.is_file():
+    try:
+        target = (root / relative).resolve()
+        ok = target.is_relative_to(root) and target != root and target.is_file()
+    except (OSError, ValueError):  # NUL byte, name too long, symlink loop
+        ok = False
+    if not ok:
         raise NotFound(f"job {job.id} has no artifact {relative!r}")
     return target
 

@@ -1,22 +1,39 @@
-"""Sessions: register a folder, unpack an uploaded zip safely, describe one."""
+"""Sessions: register a folder, unpack an uploaded zip safely, describe one.
+
+What registration checks (upload and ``POST /api/sessions`` alike), before anything is
+stored: the folder is a real directory inside the allowed roots (``Settings.session_roots``,
+after resolving ``..`` and symlinks); no symlink inside it leads out of it; it reads as a
+session with ``core.io.read_session(check_clouds=True)`` (every CSV, and every PLY's
+header and size: a truncated cloud anywhere is refused); the reference cloud and the
+first cloud of each sequence parse and are in metres; ``phantom.stl`` and
+``calibration/picked.json`` parse when present; it lists at least one sequence. Errors
+name the file and the problem; a refused folder leaves the database as it was.
+"""
 
 from __future__ import annotations
 
+import os
 import shutil
 import stat
 import uuid
 import zipfile
+import zlib
 from pathlib import Path, PurePosixPath
 from typing import BinaryIO
 
 from sqlalchemy import select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session as DB
 
 from app.server import db as dbm
-from app.server.errors import Conflict, Invalid, NotFound, TooLarge
+from app.server.errors import Conflict, Forbidden, Invalid, NotFound, TooLarge
 from app.server.settings import Settings
 
-__all__ = ["list_sessions", "get_session", "register_folder", "upload_zip", "describe", "unregister", "safe_extract"]
+__all__ = ["list_sessions", "get_session", "register_folder", "check_session", "upload_zip", "describe",
+           "unregister", "safe_extract", "MAX_ZIP_MEMBERS"]
+
+MAX_ZIP_MEMBERS = 200_000
+"""Most entries an uploaded zip may hold (a paper-scale session has ~22k files)."""
 
 
 def list_sessions(db: DB) -> list[dbm.SessionRecord]:
@@ -24,80 +41,186 @@ def list_sessions(db: DB) -> list[dbm.SessionRecord]:
 
 
 def get_session(db: DB, session_id: int) -> dbm.SessionRecord:
-    """Raises NotFound."""
-    rec = db.get(dbm.SessionRecord, session_id)
+    """Raises NotFound (also for ids no database column can hold)."""
+    rec = db.get(dbm.SessionRecord, session_id) if dbm.valid_id(session_id) else None
     if rec is None:
         raise NotFound(f"no session with id {session_id}")
     return rec
 
 
-def _validate(path: Path):
-    from core.io import read_session
+def _escaping_symlink(root: Path) -> Path | None:
+    """The first symlink under ``root`` (files and folders, not followed) whose target
+    resolves outside ``root``, or None."""
+    for dirpath, dirnames, filenames in os.walk(root):
+        for name in dirnames + filenames:
+            p = Path(dirpath) / name
+            if p.is_symlink() and not p.resolve().is_relative_to(root):
+                return p
+    return None
 
-    return read_session(path)  # SessionFormatError -> 422 with the file and the problem
 
+def check_session(folder: Path):
+    """Validate a session folder for registration (see the module docstring).
 
-def register_folder(db: DB, path: str, name: str | None = None, source: str = "registered") -> dbm.SessionRecord:
-    """Register an existing session folder (validated with ``core.io.read_session``).
+    Args:
+        folder: an absolute, resolved directory.
+
+    Returns:
+        the ``core.io.Session``.
 
     Raises:
-        Invalid: not a directory. SessionFormatError: not a valid session.
+        SessionFormatError (and its subclasses MissingFileError, PlyError, ColumnError,
+        TimestampError, UnitsError): the file and the problem; also for a symlink leading
+        out of the folder and a session without sequences.
+        Invalid: the folder cannot be read (permissions).
+    """
+    from core.errors import SessionFormatError
+    from core.io import read_picked, read_session
+
+    try:
+        link = _escaping_symlink(folder)
+        if link is not None:
+            raise SessionFormatError(link, "is a symlink leading out of the session folder; copy the data in instead")
+        session = read_session(folder, check_clouds=True)
+        if not session.sequences:
+            raise SessionFormatError(folder / "session.json", "lists no sequences; a session needs at least one")
+        session.reference_cloud()  # parse, finite points, metres
+        for seq in session.sequences.values():
+            seq.cloud(0)
+        session.phantom_mesh()
+        read_picked(folder)
+    except PermissionError as exc:
+        raise Invalid(f"{exc.filename or folder}: cannot be read by the server ({exc.strerror})") from exc
+    return session
+
+
+def _resolve_folder(path: str) -> Path:
+    try:
+        folder = Path(path).expanduser().resolve()
+        is_dir = folder.is_dir()
+    except (OSError, ValueError, RuntimeError) as exc:  # NUL byte, name too long, unknown ~user, loops
+        raise Invalid(f"{path!r}: not a usable path ({exc})") from exc
+    if not is_dir:
+        raise Invalid(f"{path}: not a directory")
+    return folder
+
+
+def _check_allowed(folder: Path, settings: Settings | None) -> None:
+    if settings is None or not settings.session_roots:
+        return
+    roots = [Path(r).expanduser().resolve() for r in settings.session_roots]
+    roots += [settings.sessions_dir.resolve(), settings.jobs_dir.resolve()]
+    if not any(folder.is_relative_to(r) for r in roots):
+        raise Forbidden(f"{folder}: outside the folders sessions may be registered from "
+                        f"({', '.join(str(r) for r in roots[:-2])})")
+
+
+def register_folder(db: DB, path: str, name: str | None = None, source: str = "registered",
+                    settings: Settings | None = None) -> dbm.SessionRecord:
+    """Register an existing session folder after :func:`check_session`.
+
+    Args:
+        path: the folder on the server (``~``, ``..`` and symlinks are resolved first).
+        name: display name (default: the folder's name).
+        source: ``registered``, ``uploaded`` or ``generated``.
+        settings: its ``session_roots`` restrict where folders may be (None: anywhere).
+
+    Raises:
+        Invalid: not a usable path or not a directory. Forbidden: outside the allowed
+        roots. SessionFormatError: not a valid session (the file and the problem).
         Conflict: the folder is registered already.
     """
-    folder = Path(path).expanduser().resolve()
-    if not folder.is_dir():
-        raise Invalid(f"{path}: not a directory")
-    _validate(folder)
+    folder = _resolve_folder(path)
+    _check_allowed(folder, settings)
+    check_session(folder)
     if db.scalar(select(dbm.SessionRecord).where(dbm.SessionRecord.path == str(folder))) is not None:
         raise Conflict(f"{folder} is registered already")
     rec = dbm.SessionRecord(name=name or folder.name, path=str(folder), source=source)
     db.add(rec)
-    db.commit()
+    try:
+        db.commit()
+    except IntegrityError as exc:  # the same folder registered concurrently
+        db.rollback()
+        raise Conflict(f"{folder} is registered already") from exc
     return rec
 
 
-def safe_extract(archive: Path, dest: Path, max_bytes: int) -> None:
-    """Extract a zip into ``dest``, refusing zip-slip and zip bombs.
+def _unsafe(name: str) -> bool:
+    parts = PurePosixPath(name.replace("\\", "/")).parts
+    return (not name or "\x00" in name or name.startswith(("/", "\\")) or ".." in parts
+            or (bool(parts) and ":" in parts[0]))
+
+
+def safe_extract(archive: Path, dest: Path, max_bytes: int, max_members: int = MAX_ZIP_MEMBERS) -> None:
+    """Extract a zip into ``dest``, refusing zip-slip, zip bombs and malformed archives.
+
+    Everything is checked on the central directory before the first byte is written;
+    the declared sizes bound what is written (``zipfile`` stops at a member's declared
+    size and checks its CRC).
 
     Raises:
-        Invalid: not a zip; a member with an absolute path, ``..``, a drive letter or a
-            symlink (anything that would land outside ``dest``).
+        Invalid: not a zip; more than ``max_members`` entries; a member with an absolute
+            path, ``..``, a drive letter, a NUL byte or a symlink (anything that would land
+            outside ``dest``); an encrypted member; a name used twice or both as a file and
+            a folder; a member that cannot be decompressed (bad CRC, truncated data,
+            unsupported compression).
         TooLarge: the members' total uncompressed size exceeds ``max_bytes``.
     """
     dest = dest.resolve()
     try:
         zf = zipfile.ZipFile(archive)
-    except zipfile.BadZipFile as exc:
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError) as exc:
         raise Invalid(f"not a zip file: {exc}") from exc
     with zf:
+        infos = zf.infolist()
+        if len(infos) > max_members:
+            raise Invalid(f"the zip holds {len(infos)} entries, more than {max_members}")
         total = 0
-        for info in zf.infolist():
+        files: set[Path] = set()
+        folders: set[Path] = set()
+        for info in infos:
             name = info.filename
-            parts = PurePosixPath(name.replace("\\", "/")).parts
-            if name.startswith(("/", "\\")) or ".." in parts or (parts and ":" in parts[0]):
+            if _unsafe(name):
                 raise Invalid(f"unsafe path in zip: {name!r}")
             if stat.S_ISLNK(info.external_attr >> 16):
                 raise Invalid(f"symlink in zip: {name!r}")
+            if info.flag_bits & 0x1:
+                raise Invalid(f"encrypted member in zip: {name!r}")
             target = (dest / name).resolve()
-            if not target.is_relative_to(dest):
+            if not target.is_relative_to(dest) or target == dest and not info.is_dir():
                 raise Invalid(f"unsafe path in zip: {name!r}")
+            if info.is_dir():
+                folders.add(target)
+            elif target in files:
+                raise Invalid(f"the zip holds {name!r} twice")
+            else:
+                files.add(target)
+            folders.update(p for p in target.parents if p.is_relative_to(dest) and p != dest)
             total += info.file_size
             if total > max_bytes:
                 raise TooLarge(f"zip expands to more than {max_bytes} bytes")
-        for info in zf.infolist():
+        clash = files & folders
+        if clash:
+            raise Invalid(f"the zip uses {sorted(str(p.relative_to(dest)) for p in clash)[0]!r} both as a file and a folder")
+        for info in infos:
             target = (dest / info.filename).resolve()
             if info.is_dir():
                 target.mkdir(parents=True, exist_ok=True)
                 continue
             target.parent.mkdir(parents=True, exist_ok=True)
-            with zf.open(info) as src, target.open("wb") as out:
-                shutil.copyfileobj(src, out, 1 << 20)
+            try:
+                with zf.open(info) as src, target.open("wb") as out:
+                    shutil.copyfileobj(src, out, 1 << 20)
+            except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as exc:
+                raise Invalid(f"cannot unpack {info.filename!r} from the zip: {exc}") from exc
 
 
 def upload_zip(db: DB, settings: Settings, stream: BinaryIO, filename: str, name: str | None) -> dbm.SessionRecord:
     """Store an uploaded zipped session under ``<data>/sessions/`` and register it.
 
-    The zip holds ``session.json`` at its top or inside one top-level folder.
+    The zip holds ``session.json`` at its top or inside one top-level folder. The HTTP
+    body was already cut off at ``settings.max_upload_bytes`` (plus multipart overhead)
+    while it streamed in (``create_app``); the copy here counts again.
 
     Raises:
         TooLarge, Invalid: see :func:`safe_extract`; no ``session.json``.
@@ -124,7 +247,7 @@ def upload_zip(db: DB, settings: Settings, stream: BinaryIO, filename: str, name
             if len(subs) != 1:
                 raise Invalid("the zip has no session.json at its top or in one top-level folder")
             root = subs[0]
-        rec = register_folder(db, str(root), name=clean, source="uploaded")
+        rec = register_folder(db, str(root), name=clean, source="uploaded", settings=settings)
     except BaseException:
         shutil.rmtree(dest, ignore_errors=True)
         raise
@@ -140,8 +263,9 @@ def describe(rec: dbm.SessionRecord) -> dict:
         SessionFormatError: the folder changed and is no longer valid.
     """
     from app.server.services.calibration import load_calibration
+    from core.io import read_session
 
-    s = _validate(Path(rec.path))
+    s = read_session(rec.path)
     return {
         "phantom_size": [float(v) for v in s.meta.phantom.size],
         "probe_radius": float(s.meta.probe.radius),

@@ -5,16 +5,17 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 
 from app.server.api.deps import SettingsDep, ViewerDep
+from app.server.api.schemas import errors
 
 router = APIRouter(prefix="/api", tags=["system"])
 
 
-@router.get("/health")
+@router.get("/health", responses=errors())
 def health():
     return {"status": "ok"}
 
 
-@router.get("/config")
+@router.get("/config", responses=errors())
 def config(request: Request, settings: SettingsDep, viewer: ViewerDep):
     """What the dashboard needs: the viewer's port (same host as the dashboard) and limits."""
     return {

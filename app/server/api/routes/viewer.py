@@ -5,8 +5,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from app.server.api.deps import DB, ViewerDep
-from app.server.api.schemas import ViewerFrame, ViewerIcp, ViewerShow
-from app.server.errors import Conflict, Invalid
+from app.server.api.schemas import ViewerFrame, ViewerIcp, ViewerShow, errors
+from app.server.errors import Conflict, Invalid, NotFound
 from app.server.services import jobs as job_svc
 from app.server.services import sessions as session_svc
 
@@ -19,7 +19,7 @@ def _need(viewer):
     return viewer
 
 
-@router.get("")
+@router.get("", responses=errors())
 def viewer_state(viewer: ViewerDep):
     """Port, what is shown, frame and time, picks; ``{"enabled": false}`` without a viewer."""
     if viewer is None:
@@ -27,25 +27,29 @@ def viewer_state(viewer: ViewerDep):
     return {"enabled": True, **viewer.state()}
 
 
-@router.post("/show")
+@router.post("/show", responses=errors(404, 409))
 def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
-    """Load a finished replay job's run (once) and show a sequence."""
+    """Load a finished replay job's run (once) and show a sequence (404: no such job or
+    sequence; 422: not a finished job with a viewer run)."""
     viewer = _need(viewer)
     job = job_svc.get_job(db, body.job_id)
     if job.status != "done" or not (job.result or {}).get("viewer"):
         raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replay and train jobs")
-    viewer.show_run(job.id, body.sequence)
+    try:
+        viewer.show_run(job.id, body.sequence)
+    except KeyError as exc:  # the run has no such sequence
+        raise NotFound(str(exc.args[0]) if exc.args else f"job {job.id} has no sequence {body.sequence!r}") from exc
     return viewer.state()
 
 
-@router.post("/frame")
+@router.post("/frame", responses=errors(409))
 def set_frame(body: ViewerFrame, viewer: ViewerDep):
     viewer = _need(viewer)
     viewer.set_frame(body.frame)
     return viewer.state()
 
 
-@router.post("/icp")
+@router.post("/icp", responses=errors(404, 409))
 def start_icp(body: ViewerIcp, db: DB, viewer: ViewerDep):
     """Open the picking mode of the viewer on a session's reference cloud."""
     viewer = _need(viewer)
