@@ -60,9 +60,12 @@ class TooLarge(AppError):
 
 def _json_safe(obj: Any) -> Any:
     """``obj`` made JSON-encodable for an error body: non-finite floats (a ``NaN`` the
-    client sent, echoed as the bad ``input``) become strings, anything else exotic its str."""
+    client sent, echoed as the bad ``input``) become strings, lone surrogates escapes,
+    anything else exotic its str."""
     if isinstance(obj, float) and not math.isfinite(obj):
         return str(obj)
+    if isinstance(obj, str):  # a lone surrogate the client sent as "\\ud800": UTF-8 cannot hold it
+        return obj.encode("utf-8", "backslashreplace").decode("utf-8")
     if isinstance(obj, dict):
         return {str(k): _json_safe(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
@@ -90,11 +93,11 @@ def install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(AppError)
     async def _app_error(_request: Request, exc: AppError):
-        return JSONResponse(status_code=exc.status, content={"detail": exc.detail})
+        return JSONResponse(status_code=exc.status, content={"detail": _json_safe(exc.detail)})
 
     @app.exception_handler(TissueTwinError)
     async def _domain_error(_request: Request, exc: TissueTwinError):
-        return JSONResponse(status_code=422, content={"detail": str(exc), "type": type(exc).__name__})
+        return JSONResponse(status_code=422, content={"detail": _json_safe(str(exc)), "type": type(exc).__name__})
 
     @app.exception_handler(ValidationError)
     async def _validation(_request: Request, exc: ValidationError):

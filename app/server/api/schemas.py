@@ -15,6 +15,26 @@ MAX_PICKS = 1000
 """Most picked point pairs in one request."""
 
 
+def _storable(value: Any, where: str) -> None:
+    """Raise ValueError unless ``value`` (nested dicts and lists, as ``Any`` fields hold
+    them unchecked) can be stored and sent back as JSON: finite numbers, and text without
+    lone surrogates (a JSON ``"\\ud800"`` escape decodes to one; UTF-8 cannot hold it)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"{where} is {value}: numbers must be finite")
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            raise ValueError(f"{where} holds a lone surrogate (not valid Unicode text)") from None
+    elif isinstance(value, dict):
+        for k, v in value.items():
+            _storable(str(k), f"{where} key")
+            _storable(v, f"{where}.{k}")
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            _storable(v, f"{where}[{i}]")
+
+
 class ErrorOut(BaseModel):
     """Every error response: a message naming the file and the problem, or pydantic's
     list of field errors (422); ``type`` is the domain error's class when there is one."""
@@ -64,17 +84,6 @@ class PickedPairs(BaseModel):
                                         description="the matching K points on the rest surface, m, phantom frame")
 
 
-def _finite(value: Any, where: str) -> None:
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"{where} is {value}: numbers must be finite")
-    if isinstance(value, dict):
-        for k, v in value.items():
-            _finite(v, f"{where}.{k}")
-    elif isinstance(value, list):
-        for i, v in enumerate(value):
-            _finite(v, f"{where}[{i}]")
-
-
 class JobCreate(BaseModel):
     type: str = Field(max_length=50, description="a job type name, see GET /api/job-types")
     params: dict[str, Any] = Field(default_factory=dict, description="validated against the type's params_schema")
@@ -83,7 +92,7 @@ class JobCreate(BaseModel):
     @classmethod
     def _no_nan(cls, v: dict[str, Any]) -> dict[str, Any]:
         # JSON has no NaN, but Python's parser accepts it; a stored NaN would break every listing
-        _finite(v, "params")
+        _storable(v, "params")
         return v
 
 
