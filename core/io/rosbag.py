@@ -312,6 +312,14 @@ def pointcloud2_xyz(msg: Any) -> tuple[np.ndarray, int]:
 # --------------------------------------------------------------------------------------
 
 
+def _stamp(ns: int) -> str:
+    """Integer ns of ROS time as exact seconds (``1700000000.000000001``); a float would
+    round at 1.7e9 s to about 0.2 us."""
+    ns = int(ns)
+    sign = "-" if ns < 0 else ""
+    return f"{sign}{abs(ns) // _NS}.{abs(ns) % _NS:09d}"
+
+
 def _short(msgtype: str) -> str:
     """``geometry_msgs/msg/PoseStamped`` -> ``geometry_msgs/PoseStamped``."""
     return msgtype.replace("/msg/", "/")
@@ -551,8 +559,6 @@ def _scan(bag: _Bag, config: BagImportConfig, *, intrinsics: bool, reference: bo
 def _poses(bag: _Bag, config: BagImportConfig, st: np.ndarray, v: np.ndarray, msgtype: str,
            frame_ids: set[str]) -> _Poses:
     """Sort, deduplicate and check the pose messages; move to the sphere centre."""
-    from scipy.spatial.transform import Rotation  # noqa: PLC0415
-
     topic = config.pose_topic
     _zero_stamps(bag, topic, st)
     idx, dup = _first_unique(st)
@@ -561,22 +567,24 @@ def _poses(bag: _Bag, config: BagImportConfig, st: np.ndarray, v: np.ndarray, ms
     if bad.any():
         i = int(np.flatnonzero(bad)[0])
         raise BagError(bag.path, f"pose topic {topic!r} has a non-finite pose at "
-                                 f"{st[i] / _NS:.9f} s: {v[i].tolist()}")
+                                 f"{_stamp(st[i])} s: {v[i].tolist()}")
     qn = np.linalg.norm(v[:, 3:], axis=1)
     if (qn < 1e-9).any():
         i = int(np.flatnonzero(qn < 1e-9)[0])
-        raise BagError(bag.path, f"pose topic {topic!r} has a zero quaternion at {st[i] / _NS:.9f} s")
+        raise BagError(bag.path, f"pose topic {topic!r} has a zero quaternion at {_stamp(st[i])} s")
     q = v[:, 3:] / qn[:, None]
     pos = v[:, :3]
     offset = np.asarray(config.tip_offset, dtype=np.float64)
     if offset.any():
+        from scipy.spatial.transform import Rotation  # noqa: PLC0415 (slow import, rarely needed)
+
         pos = pos + Rotation.from_quat(q).apply(offset)
     try:
         _check_positions_metres(bag.path, pos, "probe position")
     except UnitsError:
         norms = np.linalg.norm(pos, axis=1)
         i = int(np.argmax(norms))
-        raise UnitsError(bag.path, f"pose topic {topic!r}: the probe at {st[i] / _NS:.9f} s is "
+        raise UnitsError(bag.path, f"pose topic {topic!r}: the probe at {_stamp(st[i])} s is "
                                    f"{norms[i]:.6g} m from the robot origin ({pos[i].tolist()}): "
                                    f"looks like millimetres; ROS (REP 103) and the session format "
                                    f"use metres") from None
@@ -596,7 +604,7 @@ def _force(bag: _Bag, config: BagImportConfig, st: np.ndarray, v: np.ndarray,
     st, v = st[idx], v[idx]
     if not np.isfinite(v).all():
         i = int(np.flatnonzero(~np.isfinite(v).all(axis=1))[0])
-        raise BagError(bag.path, f"force topic {topic!r} has a non-finite force at {st[i] / _NS:.9f} s")
+        raise BagError(bag.path, f"force topic {topic!r} has a non-finite force at {_stamp(st[i])} s")
     if config.negate_force:
         v = -v
     base = st[0]
@@ -605,9 +613,9 @@ def _force(bag: _Bag, config: BagImportConfig, st: np.ndarray, v: np.ndarray,
     period = float(np.median(np.diff(ft))) if ft.size > 1 else 0.0
     outside = (kt < ft[0]) | (kt > ft[-1])
     if outside.any() and float(np.maximum(ft[0] - kt, kt - ft[-1]).max()) > 2 * period:
-        raise BagError(bag.path, f"force topic {topic!r} spans {st[0] / _NS:.6f}-{st[-1] / _NS:.6f} s "
-                                 f"but the poses span {pose_stamps[0] / _NS:.6f}-"
-                                 f"{pose_stamps[-1] / _NS:.6f} s: the forces must cover the poses")
+        raise BagError(bag.path, f"force topic {topic!r} spans {_stamp(st[0])}-{_stamp(st[-1])} s "
+                                 f"but the poses span {_stamp(pose_stamps[0])}-"
+                                 f"{_stamp(pose_stamps[-1])} s: the forces must cover the poses")
     force = np.stack([np.interp(kt, ft, v[:, j]) for j in range(3)], axis=1)
     return force, int(outside.sum())
 
@@ -626,14 +634,14 @@ def _cloud(bag: _Bag, topic: str, stamp: int, msg: Any) -> tuple[np.ndarray, int
     try:
         return pointcloud2_xyz(msg)
     except ValueError as exc:
-        raise BagError(bag.path, f"cloud topic {topic!r}, message at {stamp / _NS:.9f} s: {exc}") from None
+        raise BagError(bag.path, f"cloud topic {topic!r}, message at {_stamp(stamp)} s: {exc}") from None
 
 
 def _check_cloud_units(bag: _Bag, topic: str, stamp: int, points: np.ndarray) -> None:
     try:
         _check_cloud_metres(bag.path, points)
     except UnitsError as exc:
-        raise UnitsError(bag.path, f"topic {topic!r}, cloud at {stamp / _NS:.9f} s: {exc.problem}") from None
+        raise UnitsError(bag.path, f"topic {topic!r}, cloud at {_stamp(stamp)} s: {exc.problem}") from None
 
 
 def _reference(bag: _Bag, topic: str, stamp: int, msg: Any) -> np.ndarray:
@@ -874,7 +882,11 @@ def _write_clouds(writer: SessionWriter, plan: _BagPlan, config: BagImportConfig
             t = (stamp - plan.t0_ns) / _NS
             if not kin_t[0] <= t <= kin_t[-1]:
                 stats["outside"] += 1
-            writer.write_frame(plan.name, r, t, points)
+            try:  # the writer's millimetre check, reported against the bag and topic
+                writer.write_frame(plan.name, r, t, points)
+            except UnitsError as exc:
+                raise UnitsError(plan.path, f"cloud topic {topic!r}, message at {_stamp(stamp)} s: "
+                                            f"{exc.problem}") from None
             stats["frames"] += 1
             if r % every == 0:
                 progress(r, f"{plan.name}: frame {r + 1}/{kept.size}")
@@ -887,8 +899,6 @@ def _write_clouds(writer: SessionWriter, plan: _BagPlan, config: BagImportConfig
             if not cp.keep[i]:
                 continue
             points, total = _cloud(bag, topic, stamp, msg)
-            if points.shape[0]:
-                _check_cloud_units(bag, topic, stamp, points)
             heapq.heappush(heap, (int(rank[i]), stamp, points, total))
             flush(cp.lag)
         flush(0)

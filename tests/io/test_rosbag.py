@@ -423,6 +423,17 @@ def test_millimetre_poses_are_refused_naming_bag_and_topic(original, tmp_path):
     bag = write_bag(tmp_path / "mm.bag", "ros1", items)
     with pytest.raises(UnitsError, match=r"mm.bag: pose topic '/PSM1/measured_cp': .* looks like millimetres"):
         import_bags([bag], tmp_path / "o", corners=corners_csv(original))
+    # metres for the poses, millimetres for the clouds
+    items = [(POSE, "geometry_msgs/msg/PoseStamped", EPOCH_NS + k * NS // 100,
+              pose_msg(ts, EPOCH_NS + k * NS // 100, kin.position[k].tolist(), kin.quaternion[k].tolist(), "pose"))
+             for k in range(5)]
+    items += [(CLOUD, "sensor_msgs/msg/PointCloud2", EPOCH_NS + i, encode_cloud(ts, EPOCH_NS + i, cloud * (1000 if i else 1), "xyz16",
+                                                                                np.random.default_rng(i))) for i in range(2)]
+    bag = write_bag(tmp_path / "mm-cloud.bag", "ros1", items)
+    with pytest.raises(UnitsError, match=r"mm-cloud.bag: cloud topic '/camera/depth/color/points', message at "
+                                         r"1700000000.000000001 s: median point distance .* looks like millimetres"):
+        import_bags([bag], tmp_path / "o", corners=corners_csv(original), config=BagImportConfig(camera_rate_hz=30.0))
+    _nothing_left(tmp_path / "o")
 
 
 def test_zero_header_stamps_ask_for_log_time(original, tmp_path):
@@ -442,6 +453,64 @@ def test_zero_header_stamps_ask_for_log_time(original, tmp_path):
     np.testing.assert_allclose(s.sequences["seq00"].kinematics.t, np.arange(20) / 100, rtol=0, atol=T_TOL)
     np.testing.assert_allclose(s.sequences["seq00"].frames.t, np.arange(3) / 15, rtol=0, atol=T_TOL)
     assert result.camera_rate_hz == pytest.approx(15.0, rel=1e-6)
+
+
+def _short_bag(original, path: Path, storage: str, *, n_poses: int = 20, force_rows: slice | None = None,
+               force: np.ndarray | None = None) -> Path:
+    """Poses every 10 ms, three clouds of seq00, optional forces at some of the pose stamps."""
+    ts = TS1 if storage == "ros1" else TS2
+    seq = original.sequences["seq00"]
+    kin = seq.kinematics
+    items = [(POSE, "geometry_msgs/msg/PoseStamped", EPOCH_NS + k * NS // 100,
+              pose_msg(ts, EPOCH_NS + k * NS // 100, kin.position[k].tolist(), kin.quaternion[k].tolist(), "pose"))
+             for k in range(n_poses)]
+    rng = np.random.default_rng(8)
+    items += [(CLOUD, "sensor_msgs/msg/PointCloud2", EPOCH_NS + i * NS // 15,
+               encode_cloud(ts, EPOCH_NS + i * NS // 15, seq.cloud(i), "xyzrgb", rng)) for i in range(3)]
+    if force is not None:
+        rows = range(n_poses)[force_rows or slice(None)]
+        items += [(FORCE, "geometry_msgs/msg/WrenchStamped", EPOCH_NS + k * NS // 100,
+                   wrench_msg(ts, EPOCH_NS + k * NS // 100, force[k])) for k in rows]
+    return write_bag(path, storage, items)
+
+
+def test_forces_must_cover_the_poses_and_can_be_negated(original, tmp_path):
+    f = np.random.default_rng(9).normal(0.0, 0.5, size=(20, 3))
+    config = BagImportConfig(force_topic=FORCE, negate_force=True, camera_rate_hz=15.0)
+    bag = _short_bag(original, tmp_path / "force.bag", "ros1", force=f)
+    s = read_session(import_bags([bag], tmp_path / "o", corners=corners_csv(original), config=config).path)
+    np.testing.assert_array_equal(s.sequences["seq00"].kinematics.force, -f)
+    # forces at every other pose stamp: linear interpolation in between
+    bag = _short_bag(original, tmp_path / "half.bag", "ros1", force=f, force_rows=slice(0, 20, 2))
+    result = import_bags([bag], tmp_path / "h", corners=corners_csv(original), config=config)
+    got = read_session(result.path).sequences["seq00"].kinematics.force
+    np.testing.assert_allclose(got[0:19:2], -f[0:19:2], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(got[1:18:2], -(f[0:17:2] + f[2:19:2]) / 2, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(got[19], -f[18])  # the last pose is 10 ms past the last force: nearest
+    assert result.sequences[0].force_rows_clamped == 1
+    # forces for the first half only: refused, naming the topic
+    bag = _short_bag(original, tmp_path / "short.bag", "ros1", force=f, force_rows=slice(0, 10))
+    with pytest.raises(BagError, match=r"short.bag: force topic '/PSM1/body/measured_cf' spans .* the forces must cover"):
+        import_bags([bag], tmp_path / "x", corners=corners_csv(original), config=config)
+    _nothing_left(tmp_path / "x")
+
+
+def test_reference_ply_and_phantom_stl_files_are_stored(original, tmp_path):
+    import trimesh
+
+    stl = tmp_path / "phantom.stl"
+    trimesh.creation.box(extents=original.meta.phantom.size).export(stl)
+    bag = _short_bag(original, tmp_path / "b", "sqlite3")
+    ref = original.path / "calibration" / "reference.ply"
+    result = import_bags([bag], tmp_path / "o", corners=corners_csv(original), reference=ref, phantom_stl=stl,
+                         config=BagImportConfig(camera_rate_hz=15.0, names=("poke",)))
+    s = read_session(result.path)
+    np.testing.assert_array_equal(s.reference_cloud(), original.reference_cloud())
+    assert (s.path / "phantom.stl").read_bytes() == stl.read_bytes()
+    assert result.reference == str(ref)
+    with pytest.raises(TissueTwinError, match="not both"):
+        import_bags([bag], tmp_path / "p", corners=corners_csv(original), reference=ref,
+                    config=BagImportConfig(reference_topic=REF))
 
 
 def test_empty_clouds_are_dropped_leaving_a_gap(original, tmp_path):
