@@ -16,7 +16,9 @@ the ones from the phantom. Then we subsample the points". Here with Open3D:
    Points less than ``table_margin`` above the plane (or below it) are removed.
 2. **Instrument** -- points inside the probe sphere (radius + margin) and inside the
    shaft cylinder (radius + margin), which runs from the sphere centre away from the
-   tip, i.e. along ``-shaft_axis_phantom``, without end (it leaves the field of view).
+   tip, i.e. along ``-shaft_axis_phantom``, without end (it leaves the field of view),
+   and points more than 3 mm above the rest top face near the probe (a probe bigger
+   than its nominal radius; see :func:`instrument_mask`).
 3. **Outliers** -- crop to the phantom box grown by ``crop_margin`` (deformation can
    bulge sideways), then statistical outlier removal (Rusu et al. 2008;
    ``open3d`` ``remove_statistical_outlier``).
@@ -224,8 +226,17 @@ def instrument_mask(
     probe_radius: float,
     shaft_radius: float,
     margin: float,
+    top_z: float | None = None,
+    top_margin: float = 0.003,
 ) -> np.ndarray:
     """Boolean (N,) mask of points inside the instrument (sphere tip + shaft cylinder).
+
+    With ``top_z`` (the rest top face's height), points higher than ``top_z +
+    top_margin`` within ``2 (probe_radius + margin)`` horizontally of the sphere centre
+    count as instrument too: the phantom's surface next to a probe is pushed down, never
+    millimetres up, so whatever is there is tool. This catches a probe bigger than its
+    nominal radius, whose cap lies outside the nominal sphere (a 7.5 mm sphere recorded
+    as 5 mm leaves its cap 8-10 mm from the calibrated centre, past a 2 mm margin).
 
     Args:
         points_phantom: (N, 3) float64 phantom-frame points, m.
@@ -235,6 +246,8 @@ def instrument_mask(
             occupies ``centre - s * axis`` for ``s >= 0``. None: sphere only.
         probe_radius: sphere radius, m. shaft_radius: cylinder radius, m.
         margin: added to both radii, m (noise, kinematic error).
+        top_z, top_margin: see above, m (3 mm ~ 3 sigma of SR300 depth noise, as the
+            table margin). None: no height test.
     """
     n = points_phantom.shape[0]
     if probe_centre_phantom is None:
@@ -251,6 +264,9 @@ def instrument_mask(
         s = d @ u
         perp2 = np.einsum("ij,ij->i", d, d) - s**2
         mask |= (s > 0.0) & (perp2 < (shaft_radius + margin) ** 2)
+    if top_z is not None:
+        near = np.einsum("ij,ij->i", d[:, :2], d[:, :2]) < (2.0 * (probe_radius + margin)) ** 2
+        mask |= near & (points_phantom[:, 2] > top_z + top_margin)
     return mask
 
 
@@ -375,7 +391,7 @@ def clean_cloud(
     # 2. instrument
     if probe_centre_phantom is not None:
         inst = instrument_mask(q, probe_centre_phantom, shaft_axis_phantom, probe_radius=probe_radius,
-                               shaft_radius=shaft_radius, margin=margin)
+                               shaft_radius=shaft_radius, margin=margin, top_z=float(size[2]))
         counts["instrument"] = int(np.count_nonzero(inst))
         q = q[~inst]
 

@@ -14,6 +14,7 @@ import pytest
 
 from core.errors import CleaningError
 from core.registration import clean_cloud, find_table_plane
+from core.registration.cleaning import instrument_mask
 
 SIZE = np.array([0.0687, 0.0393, 0.0358])
 PHANTOM, TABLE, INSTRUMENT, OUTLIER = 0, 1, 2, 3
@@ -269,3 +270,25 @@ def test_cleaning_is_deterministic_on_a_real_frame(sample_session):
     runs = [clean_cloud(pts, T, session.meta.phantom.size, voxel_size=0.001, seed=7).points_phantom for _ in range(6)]
     for r in runs[1:]:
         np.testing.assert_array_equal(r, runs[0])
+
+
+def test_a_probe_bigger_than_nominal_is_still_removed_above_the_top():
+    """A 7.5 mm sphere recorded as 5 mm: the corner-touch calibration puts its centre
+    2.5 mm low, so its cap is 8-10 mm from the calibrated centre, past the 2 mm margin.
+    Points more than 3 mm above the rest top near the probe go; the phantom's dent
+    around it stays."""
+    top = 0.0358
+    cal = np.array([0.03, 0.02, top - 0.006 + 0.005])  # 6 mm deep, nominal radius
+    true = cal + [0.0, 0.0, 0.0025]
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(4000, 3))
+    sphere = true + 0.0075 * u / np.linalg.norm(u, axis=1, keepdims=True)
+    visible = sphere[sphere[:, 2] > top]  # what sticks out of the phantom
+    ring = np.column_stack([cal[0] + 0.012 * np.cos(np.linspace(0, 6.28, 200)),
+                            cal[1] + 0.012 * np.sin(np.linspace(0, 6.28, 200)), np.full(200, top - 0.001)])
+    kw = dict(probe_radius=0.005, shaft_radius=0.0045, margin=0.002)
+    old = instrument_mask(visible, cal, None, **kw)
+    assert old.mean() < 0.5  # the nominal sphere alone leaves most of the cap
+    new = instrument_mask(visible, cal, None, top_z=top, **kw)
+    assert np.all(new[visible[:, 2] > top + 0.003])
+    assert not instrument_mask(ring, cal, None, top_z=top, **kw).any()
