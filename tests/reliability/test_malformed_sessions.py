@@ -419,7 +419,7 @@ def bench(live):
 
 def _stored(client: httpx.Client, live) -> tuple:
     client.post("/api/sessions/upload", files={"file": ("up.zip", _zip(live.session), "application/zip")}).raise_for_status()
-    job = client.post("/api/jobs", json={"type": "replay", "params": {"session_id": live.session_id}}).raise_for_status().json()
+    job = client.post("/api/jobs", json={"type": "replay", "params": {"session_id": live.session_id, "grid": [4, 3, 3]}}).raise_for_status().json()
     deadline = time.monotonic() + 120
     while (job := client.get(f"/api/jobs/{job['id']}").json())["status"] not in FINAL:
         assert time.monotonic() < deadline, job

@@ -44,6 +44,7 @@ class ErrorOut(BaseModel):
 
 
 _DESCRIPTIONS = {
+    400: "a request body that cannot be parsed (not UTF-8, not JSON, broken multipart)",
     403: "a path outside the folders the server may read",
     404: "no such session, job, job type, artifact or run",
     409: "contradicts the current state (registered already, job final already, viewer off)",
@@ -54,11 +55,19 @@ _DESCRIPTIONS = {
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     """``responses=`` for a route: the error statuses it may answer, documented in the
-    OpenAPI spec with :class:`ErrorOut` (422 always: every route validates input)."""
-    return {c: {"model": ErrorOut, "description": _DESCRIPTIONS[c]} for c in sorted({*codes, 422})}
+    OpenAPI spec with :class:`ErrorOut` (400 and 422 always: every route parses and
+    validates its input)."""
+    return {c: {"model": ErrorOut, "description": _DESCRIPTIONS[c]} for c in sorted({*codes, 400, 422})}
 
 
-class SessionRegister(BaseModel):
+class _Request(BaseModel):
+    """A request body: strict types, as the OpenAPI spec states them (JSON ``false`` is not
+    an integer, ``"1"`` is not a number), and no unknown fields."""
+
+    model_config = ConfigDict(strict=True, extra="forbid")
+
+
+class SessionRegister(_Request):
     path: str = Field(min_length=1, max_length=4096, description="a session folder on the server's file system")
     name: str | None = Field(None, max_length=200)
 
@@ -77,14 +86,14 @@ class SessionDetail(SessionOut):
     info: dict[str, Any]
 
 
-class PickedPairs(BaseModel):
+class PickedPairs(_Request):
     points_camera: list[Point] = Field(min_length=3, max_length=MAX_PICKS,
                                        description="K >= 3 points on the reference cloud, m, camera frame")
     points_phantom: list[Point] = Field(min_length=3, max_length=MAX_PICKS,
                                         description="the matching K points on the rest surface, m, phantom frame")
 
 
-class JobCreate(BaseModel):
+class JobCreate(_Request):
     type: str = Field(max_length=50, description="a job type name, see GET /api/job-types")
     params: dict[str, Any] = Field(default_factory=dict, description="validated against the type's params_schema")
 
@@ -131,14 +140,14 @@ class JobTypeOut(BaseModel):
     params_schema: dict[str, Any]
 
 
-class ViewerShow(BaseModel):
+class ViewerShow(_Request):
     job_id: int
     sequence: str | None = Field(None, max_length=200)
 
 
-class ViewerFrame(BaseModel):
+class ViewerFrame(_Request):
     frame: int = Field(ge=0, le=10**9)
 
 
-class ViewerIcp(BaseModel):
+class ViewerIcp(_Request):
     session_id: int

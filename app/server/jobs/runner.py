@@ -65,6 +65,10 @@ def execute_job(token: str, job_id: int, run, params_cls, params: dict, artifact
     return run(params_cls.model_validate(params), ctx)
 
 
+QUEUED_POLL = 1.0
+"""Seconds between two looks at a job that has not started yet."""
+
+
 def _append(text: str, line: str) -> str:
     stamp = time.strftime("%H:%M:%S")
     return f"{text}{stamp} {line}\n"
@@ -223,15 +227,20 @@ class JobRunner:
         from distributed import Queue
 
         queue = Queue(f"{token}-reports", client=self.client)
+        started = False
         try:
             while not self._closing.is_set():
                 done = future.done()
                 items = queue.get(batch=True)
+                started = started or any(kind == "started" for kind, _ in items)
                 self._apply(job_id, items)
                 if done:
                     self._finish(job_id, future)
                     break
-                time.sleep(self.settings.progress_interval)
+                # a queued job reports nothing: ask the scheduler seldom (fifty queued
+                # jobs at the progress interval would be 200 requests a second)
+                interval = self.settings.progress_interval
+                self._closing.wait(interval if started else max(interval, QUEUED_POLL))
         except Exception:  # noqa: BLE001 - a monitor must never take the server down
             log.exception("monitor of job %s failed", job_id)
             if not self._closing.is_set():

@@ -98,8 +98,8 @@ def preview(session_path: str | Path, points_camera, points_phantom) -> dict:
         ``fitness``, ``coverage``, and the pick residuals after ICP (m).
 
     Raises:
-        Invalid: malformed picks. RegistrationError: the picks do not match rigidly
-        (> 10 mm) or ICP does not fit.
+        Invalid: malformed picks, or degenerate ones (coincident or collinear).
+        RegistrationError: the picks do not match rigidly (> 10 mm) or ICP does not fit.
     """
     from core.io import read_session
     from core.registration import apply_transform, calibrate_camera, kabsch
@@ -109,8 +109,12 @@ def preview(session_path: str | Path, points_camera, points_phantom) -> dict:
     ref = s.reference_cloud()
     if ref is None:
         ref = next(iter(s.sequences.values())).cloud(0)
-    init = kabsch(pc, pp)
-    fit = calibrate_camera(ref, s.meta.phantom.size, probe_radius=s.meta.probe.radius, picked=(pc, pp), stl_path=s.phantom_stl)
+    try:
+        init = kabsch(pc, pp)
+        fit = calibrate_camera(ref, s.meta.phantom.size, probe_radius=s.meta.probe.radius, picked=(pc, pp),
+                               stl_path=s.phantom_stl)
+    except ValueError as exc:  # kabsch: coincident or collinear picks leave the rotation undetermined
+        raise Invalid(f"picked points: {exc}") from exc
     after = np.linalg.norm(apply_transform(fit.T, pc) - pp, axis=1)
     return {
         "T_init": np.asarray(fit.T_init).tolist(),

@@ -40,8 +40,7 @@ def list_artifacts(job_id: int, db: DB):
     return svc.list_artifacts(svc.get_job(db, job_id))
 
 
-_FILE = {200: {"description": "the file (its media type from its name)",
-               "content": {"*/*": {"schema": {"type": "string", "format": "binary"}}}}}
+_FILE = {200: {"description": "the file, as it is (its media type guessed from its name)", "content": {"*/*": {}}}}
 
 
 @router.get("/{job_id}/artifacts/{path:path}", responses={**_FILE, **errors(404)}, response_class=FileResponse)
