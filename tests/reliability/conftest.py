@@ -72,7 +72,7 @@ class Live:
     server: Server
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")  # stopped after the last reliability test, not at the end of the run
 def live(tiny_session, tmp_path_factory) -> Live:
     base = tmp_path_factory.getbasetemp().resolve()  # every test's tmp_path is under it
     data = tmp_path_factory.mktemp("live") / "data"

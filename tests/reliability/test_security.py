@@ -224,7 +224,7 @@ def test_zip_member_count_is_limited(tmp_path):
 
 def test_body_size_limits_are_enforced_while_the_body_streams_in(live):
     before = _stored(live)
-    limit, total = live.max_upload_bytes, 25 * live.max_upload_bytes
+    total = 25 * live.max_upload_bytes  # 50 MB against a 2 MB limit
     boundary = "b0undary"
     head = (f"POST /api/sessions/upload HTTP/1.1\r\nHost: 127.0.0.1\r\n"
             f"Content-Type: multipart/form-data; boundary={boundary}")
