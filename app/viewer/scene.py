@@ -5,6 +5,12 @@ the server (list runs, load a run, list sessions, ICP inputs, preview, accept). 
 reaches into solvers. GUI building is split into ``_populate_*`` functions per tab
 (nerfstudio's habit).
 
+Every browser tab has its own GUI and scene (viser's per-client ``client.gui`` and
+``client.scene``, built when the tab connects): its run, sequence, frame, playback,
+layer toggles and ICP picks are its own. What all tabs share is read-only: the loaded
+runs and the encoded mesh frames. The server-side calls (the dashboard's "view" and
+"ICP init" buttons, over REST) act on every open tab and set what a new tab opens with.
+
 Replay tab: the cleaned measured cloud, the raw FEM mesh surface coloured by per-vertex
 error (legend in mm), the corrected mesh when the run has one, the probe sphere; layer
 toggles; a timeline slider, play/pause, -1/+1 frame, frame number and time. A run is
@@ -21,6 +27,7 @@ surface with the residuals; *Accept* saves the session's calibration.
 from __future__ import annotations
 
 import io
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -33,6 +40,7 @@ from app.viewer.data import RunArrays, SequenceArrays
 __all__ = ["ViewerCallbacks", "WorkbenchViewer", "error_colors", "colorbar"]
 
 _NAN_GREY = np.array([150, 150, 150], dtype=np.uint8)
+log = logging.getLogger(__name__)
 
 
 def error_colors(err: np.ndarray, vmax: float) -> np.ndarray:
@@ -115,48 +123,90 @@ class _SequenceView:
         return self._glb[key]
 
 
-class WorkbenchViewer:
-    """A viser server with the replay and ICP tabs.
+class _Shared:
+    """What every browser tab shares: runs loaded once, per-sequence display buffers (colours
+    and the GLB of each frame, encoded once), ICP inputs of a session. The last few runs and
+    sessions are kept (least recently used first out), so memory stays bounded."""
 
-    Args:
-        callbacks: see :class:`ViewerCallbacks`.
-        host, port: where viser listens (the next free port is taken if busy; see ``port``).
-    """
-
-    def __init__(self, callbacks: ViewerCallbacks, host: str = "127.0.0.1", port: int = 8081):
-        import viser
+    def __init__(self, callbacks: ViewerCallbacks, keep: int = 3):
+        from collections import OrderedDict
 
         self.cb = callbacks
-        self.server = viser.ViserServer(host=host, port=port, label="Tissue Twin", verbose=False)
-        self.port = int(self.server.get_port())
-        self.server.scene.set_up_direction("+z")
+        self.keep = keep
+        self._lock = threading.RLock()
+        self._runs: OrderedDict[int, RunArrays] = OrderedDict()
+        self._views: dict[tuple[int, str], _SequenceView] = {}
+        self._icp: OrderedDict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = OrderedDict()
+
+    def run(self, run_id: int) -> RunArrays:
+        """The run's arrays, loaded on first use. Raises whatever ``load_run`` raises."""
+        with self._lock:
+            if run_id not in self._runs:
+                self._runs[run_id] = self.cb.load_run(run_id)
+                while len(self._runs) > self.keep:
+                    old, _ = self._runs.popitem(last=False)
+                    self._views = {k: v for k, v in self._views.items() if k[0] != old}
+            self._runs.move_to_end(run_id)
+            return self._runs[run_id]
+
+    def view(self, run_id: int, sequence: str | None) -> _SequenceView:
+        """Display buffers of ``sequence`` (default: the run's first) of run ``run_id``.
+
+        Raises:
+            KeyError: the run has no such sequence.
+        """
+        with self._lock:
+            run = self.run(run_id)
+            name = sequence or next(iter(run.sequences))
+            if name not in run.sequences:
+                raise KeyError(f"run {run_id} has no sequence {name!r}; it has {list(run.sequences)}")
+            if (run_id, name) not in self._views:
+                self._views[(run_id, name)] = _SequenceView(run.sequences[name])
+            return self._views[(run_id, name)]
+
+    def icp_inputs(self, session_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with self._lock:
+            if session_id not in self._icp:
+                self._icp[session_id] = self.cb.icp_inputs(session_id)
+                while len(self._icp) > self.keep:
+                    self._icp.popitem(last=False)
+            self._icp.move_to_end(session_id)
+            return self._icp[session_id]
+
+
+class _TabView:
+    """One browser tab (one viser client): its own GUI, scene nodes, camera and selection
+    (run, sequence, frame, playback, layers, ICP picks), built with ``client.gui`` and
+    ``client.scene`` when the tab connects. Choices made in one tab never change another."""
+
+    def __init__(self, shared: _Shared, client):
+        self.shared = shared
+        self.cb = shared.cb
+        self.client = client
         self._lock = threading.RLock()
         self._mute = False
         self.mode = "replay"
         self.run_id: int | None = None
         self.run: RunArrays | None = None
         self.view: _SequenceView | None = None
-        self._views: dict[str, _SequenceView] = {}
         self.frame = 0
         self.playing = False
-        self.first_frame_seconds: float | None = None
+        self._next_tick = 0.0
         self.icp: dict[str, Any] = {"session_id": None, "pick_on": "reference", "picks_reference": [],
                                     "picks_phantom": [], "result": None, "accepted": None, "error": None}
         self._icp_data: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
         self._handles: dict[str, Any] = {}
-        self._replay_root = self.server.scene.add_frame("/replay", show_axes=False)
-        self._icp_root = self.server.scene.add_frame("/icp", show_axes=False, visible=False)
-        tabs = self.server.gui.add_tab_group()
+        scene = client.scene
+        self._replay_root = scene.add_frame("/replay", show_axes=False)
+        self._icp_root = scene.add_frame("/icp", show_axes=False, visible=False)
+        tabs = client.gui.add_tab_group()
         self._populate_replay(tabs.add_tab("Replay"))
         self._populate_icp(tabs.add_tab("ICP init"))
-        self.server.scene.on_click()(self._on_click)
-        self._stop = threading.Event()
-        self._player = threading.Thread(target=self._play_loop, name="viewer-play", daemon=True)
-        self._player.start()
+        scene.on_click()(self._on_click)
 
     # ------------------------------------------------------------------ GUI
     def _populate_replay(self, tab) -> None:
-        gui = self.server.gui
+        gui = self.client.gui
         with tab:
             self.gui_run = gui.add_dropdown("Run", options=("(none)",), initial_value="(none)")
             self.gui_sequence = gui.add_dropdown("Sequence", options=("(none)",), initial_value="(none)")
@@ -173,7 +223,7 @@ class WorkbenchViewer:
             self.gui_legend = gui.add_image(colorbar(), label="error (mm)", format="png")
             self.gui_legend_text = gui.add_markdown("per-vertex error: 0 mm (left) to - mm (right); grey: no measured point")
 
-        self.gui_refresh.on_click(lambda _e: self._refresh_runs())
+        self.gui_refresh.on_click(lambda _e: self.refresh_runs())
         self.gui_run.on_update(lambda _e: None if self._mute else self._on_run_selected())
         self.gui_sequence.on_update(lambda _e: None if self._mute else self._on_sequence_selected())
         for box in (self.gui_cloud, self.gui_fem, self.gui_corrected, self.gui_probe):
@@ -182,10 +232,10 @@ class WorkbenchViewer:
         self.gui_play.on_click(lambda _e: self.toggle_play())
         self.gui_prev.on_click(lambda _e: self.step(-1))
         self.gui_next.on_click(lambda _e: self.step(+1))
-        self._refresh_runs()
+        self.refresh_runs()
 
     def _populate_icp(self, tab) -> None:
-        gui = self.server.gui
+        gui = self.client.gui
         with tab:
             self.gui_session = gui.add_dropdown("Session", options=("(none)",), initial_value="(none)")
             self.gui_load_session = gui.add_button("Load session")
@@ -208,7 +258,8 @@ class WorkbenchViewer:
         self._refresh_sessions()
 
     # ------------------------------------------------------------------ replay
-    def _refresh_runs(self) -> None:
+    def refresh_runs(self) -> None:
+        """Reload the run list (finished runs from the server) into this tab's dropdown."""
         runs = self.cb.runs()
         options = tuple(f"{rid}: {label}" for rid, label in runs) or ("(none)",)
         with self._lock:
@@ -229,50 +280,39 @@ class WorkbenchViewer:
         if self.run is not None and self.gui_sequence.value in self.run.sequences:
             self.show_run(self.run_id, self.gui_sequence.value)
 
-    def show_run(self, run_id: int, sequence: str | None = None) -> None:
-        """Show sequence ``sequence`` (default: the first) of run ``run_id``; the run's
-        arrays are loaded on first use and kept.
+    def show_run(self, run_id: int, sequence: str | None = None, frame: int = 0) -> None:
+        """Show ``sequence`` (default: the first) of run ``run_id`` at ``frame`` in this tab.
 
         Raises:
             KeyError: the run has no such sequence. Whatever ``load_run`` raises.
         """
-        t0 = time.perf_counter()
         with self._lock:
-            if self.run_id != run_id or self.run is None:
-                self.run = self.cb.load_run(run_id)
-                self.run_id = run_id
-                self._views = {}
-            name = sequence or next(iter(self.run.sequences))
-            if name not in self.run.sequences:
-                raise KeyError(f"run {run_id} has no sequence {name!r}; it has {list(self.run.sequences)}")
-            if name not in self._views:
-                self._views[name] = _SequenceView(self.run.sequences[name])
-            self.view = self._views[name]
+            view = self.shared.view(run_id, sequence)
+            self.run, self.run_id, self.view = self.shared.run(run_id), run_id, view
             self.playing = False
             self._mute = True
             try:
-                self._refresh_runs()
+                self.refresh_runs()
                 self._mute = True
                 label = next((o for o in self.gui_run.options if o.startswith(f"{run_id}:")), None)
                 if label:
                     self.gui_run.value = label
                 self.gui_sequence.options = tuple(self.run.sequences)
-                self.gui_sequence.value = name
-                n = self.view.seq.n_frames
+                self.gui_sequence.value = view.seq.name
+                n = view.seq.n_frames
                 self.gui_frame.max = max(n - 1, 1)
                 self.gui_frame.disabled = n < 2
-                self.gui_corrected.disabled = self.view.seq.corrected_positions is None
+                self.gui_corrected.disabled = view.seq.corrected_positions is None
             finally:
                 self._mute = False
-            self.gui_legend_text.content = (f"per-vertex error: 0 mm (left) to {self.view.vmax * 1e3:g} mm (right); "
+            self.gui_legend_text.content = (f"per-vertex error: 0 mm (left) to {view.vmax * 1e3:g} mm (right); "
                                             "grey: no measured point")
             self._build_replay_nodes()
             self._set_mode("replay")
-            self.set_frame(0)
-            self.first_frame_seconds = time.perf_counter() - t0
+            self.set_frame(frame)
 
     def _build_replay_nodes(self) -> None:
-        scene = self.server.scene
+        scene = self.client.scene
         seq = self.view.seq
         for key in ("cloud", "fem", "corrected", "probe"):
             h = self._handles.pop(key, None)
@@ -287,10 +327,7 @@ class WorkbenchViewer:
             "/replay/probe", radius=seq.probe_radius, color=(220, 60, 60), position=tuple(float(v) for v in seq.probe_centres[0]))
         self._apply_visibility()
         centre = np.nanmean(seq.positions[0], axis=0)
-        for client in self.server.get_clients().values():
-            client.camera.look_at = tuple(float(v) for v in centre)
-            client.camera.position = tuple(float(v) for v in centre + np.array([0.0, -0.16, 0.12]))
-            client.camera.up_direction = (0.0, 0.0, 1.0)
+        self._set_camera(position=centre + np.array([0.0, -0.16, 0.12]), look_at=centre, up=(0.0, 0.0, 1.0))
 
     def _apply_visibility(self) -> None:
         for key, box in (("cloud", self.gui_cloud), ("fem", self.gui_fem), ("corrected", self.gui_corrected), ("probe", self.gui_probe)):
@@ -328,16 +365,16 @@ class WorkbenchViewer:
 
     def toggle_play(self) -> None:
         self.playing = not self.playing and self.view is not None
+        self._next_tick = time.monotonic()
 
-    def _play_loop(self) -> None:
-        while not self._stop.is_set():
-            if self.playing and self.view is not None:
-                seq = self.view.seq
-                dt = float(np.median(np.diff(seq.times))) if seq.n_frames > 1 else 0.1
-                self.set_frame((self.frame + 1) % seq.n_frames)
-                self._stop.wait(max(dt, 0.02))
-            else:
-                self._stop.wait(0.05)
+    def tick(self, now: float) -> None:
+        """Advance one frame when playing and the frame's time step has passed (the player thread)."""
+        if not self.playing or self.view is None or now < self._next_tick:
+            return
+        seq = self.view.seq
+        dt = float(np.median(np.diff(seq.times))) if seq.n_frames > 1 else 0.1
+        self._next_tick = now + max(dt, 0.02)
+        self.set_frame((self.frame + 1) % seq.n_frames)
 
     # ------------------------------------------------------------------ ICP
     def _refresh_sessions(self) -> None:
@@ -354,14 +391,14 @@ class WorkbenchViewer:
     def start_icp(self, session_id: int) -> None:
         """Enter picking mode on a session: show its reference cloud from the camera's viewpoint."""
         with self._lock:
-            self._icp_data = self.cb.icp_inputs(session_id)
+            self._icp_data = self.shared.icp_inputs(session_id)
             ref, surface, _ = self._icp_data
             self.icp.update(session_id=session_id, picks_reference=[], picks_phantom=[], result=None, accepted=None, error=None)
             self._refresh_sessions()
             label = next((o for o in self.gui_session.options if o.startswith(f"{session_id}:")), None)
             if label:
                 self.gui_session.value = label
-            scene = self.server.scene
+            scene = self.client.scene
             finite = ref[np.all(np.isfinite(ref), axis=1)]
             depth = finite[:, 2]
             shade = np.clip((depth - depth.min()) / max(np.ptp(depth), 1e-9), 0, 1)
@@ -403,17 +440,15 @@ class WorkbenchViewer:
                 self._set_camera(position=centre + np.array([0.0, -0.12, 0.16]), look_at=centre, up=(0.0, 0.0, 1.0))
 
     def _set_camera(self, position, look_at, up) -> None:
-        for client in self.server.get_clients().values():
-            client.camera.up_direction = tuple(float(v) for v in up)
-            client.camera.position = tuple(float(v) for v in position)
-            client.camera.look_at = tuple(float(v) for v in look_at)
+        camera = self.client.camera
+        camera.up_direction = tuple(float(v) for v in up)
+        camera.position = tuple(float(v) for v in position)
+        camera.look_at = tuple(float(v) for v in look_at)
 
     def _on_click(self, event) -> None:
         if self.mode != "icp" or self._icp_data is None:
             return
-        o = np.asarray(event.ray_origin, float)
-        d = np.asarray(event.ray_direction, float)
-        self.pick_ray(o, d)
+        self.pick_ray(np.asarray(event.ray_origin, float), np.asarray(event.ray_direction, float))
 
     def pick_ray(self, origin: np.ndarray, direction: np.ndarray) -> np.ndarray | None:
         """Add the point nearest to a ray (front-most surface) on the active cloud.
@@ -447,7 +482,7 @@ class WorkbenchViewer:
             return p
 
     def _draw_picks(self) -> None:
-        scene = self.server.scene
+        scene = self.client.scene
         for which, color in (("reference", (255, 40, 40)), ("phantom", (255, 40, 200))):
             pts = np.asarray(self.icp["picks_" + which], dtype=np.float32).reshape(-1, 3)
             visible = self.icp["pick_on"] == which and self.mode == "icp"
@@ -492,7 +527,7 @@ class WorkbenchViewer:
             self.icp.update(result=res, error=None)
             ref, surface, _ = self._icp_data
             finite = ref[np.all(np.isfinite(ref), axis=1)]
-            scene = self.server.scene
+            scene = self.client.scene
             for key, T, color in (("icp_before", res["T_init"], (255, 150, 30)), ("icp_after", res["T_phantom_camera"], (40, 200, 60))):
                 T = np.asarray(T)
                 q = finite @ T[:3, :3].T + T[:3, 3]
@@ -538,33 +573,169 @@ class WorkbenchViewer:
             centre = np.nanmean(self.view.seq.positions[self.frame], axis=0)
             self._set_camera(position=centre + np.array([0.0, -0.16, 0.12]), look_at=centre, up=(0.0, 0.0, 1.0))
 
+    def visible(self) -> dict[str, bool]:
+        """This tab's layer toggles: cloud, fem, corrected, probe."""
+        return {k: bool(box.value) for k, box in (("cloud", self.gui_cloud), ("fem", self.gui_fem),
+                                                  ("corrected", self.gui_corrected), ("probe", self.gui_probe))}
+
     def state(self) -> dict:
-        """JSON-able state: mode, run, sequence, frame, time, playback, picks, client camera."""
+        """JSON-able state of this tab: mode, run, sequence, frame, time, layers, playback, picks, camera."""
         with self._lock:
             seq = self.view.seq if self.view is not None else None
-            cam = None
-            clients = list(self.server.get_clients().values())
-            if clients:
-                c = clients[-1].camera
-                cam = {"position": np.asarray(c.position).tolist(), "look_at": np.asarray(c.look_at).tolist(),
-                       "up": np.asarray(c.up_direction).tolist(), "fov": float(c.fov), "aspect": float(c.aspect)}
+            c = self.client.camera
+            cam = {"position": np.asarray(c.position).tolist(), "look_at": np.asarray(c.look_at).tolist(),
+                   "up": np.asarray(c.up_direction).tolist(), "fov": float(c.fov), "aspect": float(c.aspect)}
             return {
-                "port": self.port,
+                "client_id": int(self.client.client_id),
                 "mode": self.mode,
-                "run_id": self.run_id,
-                "sequence": seq.name if seq else None,
-                "sequences": list(self.run.sequences) if self.run else [],
-                "frame": self.frame,
-                "n_frames": seq.n_frames if seq else 0,
-                "layers": ([k for k, has in (("cloud", True), ("fem", True), ("corrected", seq.corrected_positions is not None),
-                                             ("probe", True)) if has] if seq else []),
-                "time": float(seq.times[self.frame]) if seq else None,
+                **_seq_state(self.run_id, self.run, seq, self.frame),
+                "visible": self.visible(),
                 "playing": self.playing,
-                "first_frame_seconds": self.first_frame_seconds,
-                "clients": len(clients),
                 "camera": cam,
-                "icp": {k: v for k, v in self.icp.items()},
+                "icp": dict(self.icp),
             }
+
+
+def _seq_state(run_id: int | None, run: RunArrays | None, seq: SequenceArrays | None, frame: int) -> dict:
+    return {
+        "run_id": run_id,
+        "sequence": seq.name if seq else None,
+        "sequences": list(run.sequences) if run else [],
+        "frame": frame,
+        "n_frames": seq.n_frames if seq else 0,
+        "layers": ([k for k, has in (("cloud", True), ("fem", True), ("corrected", seq.corrected_positions is not None),
+                                     ("probe", True)) if has] if seq else []),
+        "time": float(seq.times[frame]) if seq else None,
+    }
+
+
+class WorkbenchViewer:
+    """A viser server with the replay and ICP tabs, one independent view per browser tab.
+
+    Each tab that connects gets its own GUI and scene (viser's ``client.gui`` and
+    ``client.scene``): picking a run, a sequence, a frame, a layer or ICP points in one tab
+    leaves the others alone. Runs are loaded, and mesh frames encoded, once for all tabs.
+
+    The server-side methods (:meth:`show_run`, :meth:`set_frame`, :meth:`start_icp`; the
+    dashboard's REST calls) act on every open tab, as a remote control, and set what a tab
+    that connects later starts with.
+
+    Args:
+        callbacks: see :class:`ViewerCallbacks`.
+        host, port: where viser listens (the next free port is taken if busy; see ``port``).
+    """
+
+    def __init__(self, callbacks: ViewerCallbacks, host: str = "127.0.0.1", port: int = 8081):
+        import viser
+
+        self.cb = callbacks
+        self.shared = _Shared(callbacks)
+        self.server = viser.ViserServer(host=host, port=port, label="Tissue Twin", verbose=False)
+        self.port = int(self.server.get_port())
+        self.server.scene.set_up_direction("+z")
+        self._lock = threading.RLock()
+        self._tabs: dict[int, _TabView] = {}
+        self.shown: dict[str, Any] = {"run_id": None, "sequence": None, "frame": 0}
+        """What a new tab starts with: the run, sequence and frame last shown from the server side."""
+        self.first_frame_seconds: float | None = None
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+        self._stop = threading.Event()
+        self._player = threading.Thread(target=self._play_loop, name="viewer-play", daemon=True)
+        self._player.start()
+
+    def _connect(self, client) -> None:
+        tab = _TabView(self.shared, client)
+        with self._lock:
+            self._tabs[int(client.client_id)] = tab
+            shown = dict(self.shown)
+        if shown["run_id"] is not None:
+            try:
+                tab.show_run(shown["run_id"], shown["sequence"], shown["frame"])
+            except Exception as exc:  # noqa: BLE001 - e.g. the run's files were removed; the tab still opens
+                tab.gui_info.content = f"could not show run {shown['run_id']}: {exc}"
+
+    def _disconnect(self, client) -> None:
+        with self._lock:
+            self._tabs.pop(int(client.client_id), None)
+
+    def tabs(self) -> list[_TabView]:
+        """The open tabs, oldest first."""
+        with self._lock:
+            return list(self._tabs.values())
+
+    def show_run(self, run_id: int, sequence: str | None = None) -> None:
+        """Show ``sequence`` (default: the run's first) of run ``run_id`` at frame 0 in every
+        open tab and in tabs opened later; the run's arrays are loaded on first use and kept.
+
+        Raises:
+            KeyError: the run has no such sequence. Whatever ``load_run`` raises.
+        """
+        t0 = time.perf_counter()
+        view = self.shared.view(run_id, sequence)
+        view.glb("fem", 0)
+        if view.seq.corrected_positions is not None:
+            view.glb("corrected", 0)
+        with self._lock:
+            self.shown = {"run_id": run_id, "sequence": view.seq.name, "frame": 0}
+        self._each_tab(lambda tab: tab.show_run(run_id, view.seq.name))
+        self.first_frame_seconds = time.perf_counter() - t0
+
+    def set_frame(self, f: int) -> None:
+        """Show frame ``f`` (clipped to the sequence) in every open tab and in later ones."""
+        with self._lock:
+            if self.shown["run_id"] is None:
+                return
+            n = self.shared.view(self.shown["run_id"], self.shown["sequence"]).seq.n_frames
+            self.shown["frame"] = int(np.clip(f, 0, n - 1))
+        self._each_tab(lambda tab: tab.set_frame(f))
+
+    def start_icp(self, session_id: int) -> None:
+        """Open the picking mode on a session's reference cloud in every open tab."""
+        self.shared.icp_inputs(session_id)  # raises here, once, if the session cannot be read
+        self._each_tab(lambda tab: tab.start_icp(session_id))
+
+    def _each_tab(self, action: Callable[[_TabView], None]) -> None:
+        """Apply ``action`` to every open tab; a tab closing meanwhile does not stop the others."""
+        for tab in self.tabs():
+            try:
+                action(tab)
+            except Exception:  # noqa: BLE001 - logged; the remote control still reaches the other tabs
+                log.exception("viewer tab %s could not follow the server", tab.client.client_id)
+
+    def _play_loop(self) -> None:
+        while not self._stop.wait(0.02):
+            now = time.monotonic()
+            for tab in self.tabs():
+                try:
+                    tab.tick(now)
+                except Exception:  # noqa: BLE001 - a tab that went away mid-frame
+                    tab.playing = False
+
+    def state(self) -> dict:
+        """JSON-able state: the newest open tab's (mode, run, sequence, frame, time, layers,
+        visibility, playback, picks, camera) or, with no tab open, what a new tab would
+        show; plus the port, the number of tabs, each tab's selection in ``tabs`` and the
+        server-side time to the first frame of the last :meth:`show_run`."""
+        tabs = self.tabs()
+        if tabs:
+            state = tabs[-1].state()
+        else:
+            with self._lock:
+                shown = dict(self.shown)
+            run = seq = None
+            if shown["run_id"] is not None:
+                run = self.shared.run(shown["run_id"])
+                seq = self.shared.view(shown["run_id"], shown["sequence"]).seq
+            state = {"client_id": None, "mode": "replay", **_seq_state(shown["run_id"], run, seq, shown["frame"]),
+                     "playing": False, "camera": None,
+                     "icp": {"session_id": None, "pick_on": "reference", "picks_reference": [], "picks_phantom": [],
+                             "result": None, "accepted": None, "error": None}}
+        state.update(port=self.port, clients=len(tabs), first_frame_seconds=self.first_frame_seconds,
+                     tabs=[{"client_id": int(t.client.client_id), "mode": t.mode, "run_id": t.run_id,
+                            "sequence": t.view.seq.name if t.view else None, "frame": t.frame,
+                            "visible": t.visible()} for t in tabs])
+        return state
 
     def stop(self) -> None:
         """Stop playback and the viser server."""
