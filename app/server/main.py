@@ -43,7 +43,7 @@ def _viewer_callbacks(factory):
     """The callbacks the viewer gets: runs and sessions from the database, arrays from
     run folders, ICP through the calibration service."""
     from app.server.services import calibration as cal
-    from app.viewer.data import load_run
+    from app.viewer.data import load_run, run_label
     from app.viewer.scene import ViewerCallbacks
 
     def runs():
@@ -55,8 +55,7 @@ def _viewer_callbacks(factory):
                 if not (j.result or {}).get("viewer"):
                     continue
                 s = db.get(dbm.SessionRecord, j.session_id) if j.session_id else None
-                what = {"replay": "replay", "diagnose": "extended model"}.get(j.type, f"{j.params.get('model', '')} network")
-                out.append((j.id, f"{what} of {s.name if s else '?'} (E {j.params.get('youngs_modulus', 0):g} Pa)"))
+                out.append((j.id, run_label(j.type, viewer_folder(j), s.name if s else "?", j.result)))
             return out
 
     def load(run_id: int):

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["SequenceArrays", "RunArrays", "vertex_errors", "write_viewer_arrays", "load_run"]
+__all__ = ["SequenceArrays", "RunArrays", "vertex_errors", "write_viewer_arrays", "load_run", "run_label"]
 
 VIEWER_DIR = "viewer"
 
@@ -179,3 +179,35 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             corrected_vertex_error=corrected_err,
         )
     return RunArrays(label=label or folder.name, sequences=sequences)
+
+
+def run_label(job_type: str, folder: str | Path, session: str, result: dict | None = None) -> str:
+    """One line naming a viewer run: what made it, of which session, and the E its FEM
+    layer was replayed with (read from the run's ``replay.json``, so a diagnose run shows
+    the E it actually used, not a parameter it does not have).
+
+    Args:
+        job_type: ``"replay"``, ``"train"`` or ``"diagnose"``.
+        folder: the run folder (``replay.json`` inside).
+        session: the session's name.
+        result: the job's summary (the network kind of a train job, the claimed kinds of a
+            diagnose job), or None.
+
+    Returns:
+        e.g. ``"extended model (gravity) of s3, E 4970 Pa"``; ``"E ?"`` when the run's
+        ``replay.json`` cannot be read.
+    """
+    result = result or {}
+    try:
+        E = float(json.loads((Path(folder) / "replay.json").read_text())["youngs_modulus"])
+        e_text = f"E {E:.4g} Pa"
+    except (OSError, ValueError, KeyError, TypeError):
+        e_text = "E ?"
+    if job_type == "diagnose":
+        kinds = (result.get("extended") or {}).get("kinds") or []
+        what = f"extended model ({' + '.join(kinds)})" if kinds else "extended model"
+    elif job_type == "train":
+        what = f"{str(result.get('model', '')).upper()} network".strip()
+    else:
+        what = job_type
+    return f"{what} of {session}, {e_text}"
