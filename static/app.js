@@ -5,6 +5,10 @@ const $ = (sel) => document.querySelector(sel);
 let jobTypes = [];
 let sessions = [];
 let selectedJob = null;
+// Follow mode: until the user picks a job, the results panel shows the latest finished job,
+// so analyses (the demo's sweep, fit, diagnosis, training) fill in as they finish.
+let followLatest = !/^#job-\d+$/.test(location.hash);
+const FINAL = new Set(["done", "failed", "cancelled", "interrupted"]);
 
 async function api(method, url, body, isForm) {
   const opts = { method, headers: {} };
@@ -139,7 +143,7 @@ async function loadJobs() {
     const active = j.status === "queued" || j.status === "running";
     const actions = [
       active ? `<button class="cancel-btn" data-id="${j.id}">cancel</button>` : "",
-      (j.type === "replay" || j.type === "train") && j.status === "done" ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
+      j.status === "done" && (j.result || {}).viewer ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
     ].join(" ");
     return `<tr data-job-id="${j.id}" data-status="${j.status}">
       <td><a href="#" class="job-link" data-id="${j.id}">${j.id}</a></td><td>${j.type}</td><td>${j.session_id ?? ""}</td>
@@ -149,7 +153,12 @@ async function loadJobs() {
   }).join("");
   body.querySelectorAll(".cancel-btn").forEach((b) => b.onclick = () => api("POST", `/api/jobs/${b.dataset.id}/cancel`).then(loadJobs).catch((e) => alert(e.message)));
   body.querySelectorAll(".view-btn").forEach((b) => b.onclick = () => showInViewer(+b.dataset.id));
-  body.querySelectorAll(".job-link").forEach((a) => a.onclick = (ev) => { ev.preventDefault(); showResult(+a.dataset.id); });
+  body.querySelectorAll(".job-link").forEach((a) => a.onclick = (ev) => { ev.preventDefault(); setFollow(false); showResult(+a.dataset.id); });
+  if (followLatest) {
+    const latest = jobs.filter((j) => FINAL.has(j.status) && j.finished_at)
+      .sort((a, b) => (a.finished_at < b.finished_at ? 1 : a.finished_at > b.finished_at ? -1 : b.id - a.id))[0];
+    if (latest && (latest.id !== selectedJob || latest.status !== $("#result-body").dataset.status)) { await showResult(latest.id); return; }
+  }
   if (selectedJob !== null) {
     const j = jobs.find((x) => x.id === selectedJob);
     if (j && j.status !== $("#result-body").dataset.status) showResult(selectedJob);
@@ -157,11 +166,19 @@ async function loadJobs() {
 }
 
 // ---------------------------------------------------------------- results and plots
+function setFollow(on) {
+  followLatest = on;
+  $("#follow-latest").checked = on;
+  if (on) loadJobs().catch(() => {});
+}
+$("#follow-latest").onchange = () => setFollow($("#follow-latest").checked);
+
 async function showResult(id) {
   selectedJob = id;
   const j = await api("GET", `/api/jobs/${id}`);
   const arts = await api("GET", `/api/jobs/${id}/artifacts`);
   $("#result-title").textContent = `job ${j.id}: ${j.type}, ${j.status}`;
+  $("#results").dataset.jobId = String(j.id);
   const out = [];
   const r = j.result || {};
   if (j.type === "sweep" && j.status === "done") {
@@ -332,6 +349,7 @@ async function init() {
   await loadJobs();
   await setupViewer();
   const linked = /^#job-(\d+)$/.exec(location.hash);  // e.g. the demo's link to its replay job
+  $("#follow-latest").checked = followLatest;
   if (linked) await showResult(+linked[1]).catch((e) => say($("#launch-message"), e.message, true));
   setInterval(() => loadJobs().catch(() => {}), 1000);
   document.body.dataset.ready = "1";
