@@ -8,10 +8,10 @@ import time
 import httpx
 import pytest
 
-from tests.app.test_browser import ARGS, CHROMIUM
-from tests.app.test_server import Server
+from tests.app._server import Server
+from tests.app.conftest import needs_chromium
 
-pytestmark = [pytest.mark.slow, pytest.mark.skipif(not CHROMIUM.exists(), reason="Debian chromium is not installed (scripts/setup.sh)")]
+pytestmark = [pytest.mark.slow, needs_chromium]
 
 
 def _wait_done(url: str, job_id: int, timeout: float = 300.0) -> dict:
@@ -24,9 +24,7 @@ def _wait_done(url: str, job_id: int, timeout: float = 300.0) -> dict:
         time.sleep(0.5)
 
 
-def test_training_loss_curves_in_chromium(small_session, tmp_path):
-    from playwright.sync_api import sync_playwright
-
+def test_training_loss_curves_in_chromium(small_session, tmp_path, chromium):
     (tmp_path / "data").mkdir()
     server = Server(tmp_path / "data")
     try:
@@ -37,29 +35,27 @@ def test_training_loss_curves_in_chromium(small_session, tmp_path):
         done = _wait_done(server.url, job["id"])
         assert done["status"] == "done", done["error"]
         losses = done["result"]["losses"]
-        with sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=ARGS, headless=True)
-            try:
-                page = browser.new_page(viewport={"width": 1400, "height": 1100})
-                page.goto(server.url + "/")
-                page.wait_for_selector("body[data-ready='1']")
-                page.click(f"#jobs-table tr[data-job-id='{job['id']}'] a.job-link")
-                page.wait_for_selector("svg.loss-plot")
-                assert page.get_attribute("svg.loss-plot", "data-epochs") == str(len(losses))
-                for series in ("train", "validation"):  # one vertex per epoch, in epoch order
-                    pts = page.get_attribute(f"svg.loss-plot polyline.loss-{series}", "points").split()
-                    xs = [float(p.split(",")[0]) for p in pts]
-                    assert len(pts) == len(losses) and xs == sorted(xs) and len(set(xs)) == len(xs)
-                # the plot's vertical order follows the losses (SVG y grows downwards)
-                ys = [float(p.split(",")[1]) for p in page.get_attribute("svg.loss-plot polyline.loss-train", "points").split()]
-                vals = [e["train_loss"] for e in losses]
-                for i in range(len(vals) - 1):
-                    if vals[i] != vals[i + 1]:
-                        assert (ys[i] > ys[i + 1]) == (vals[i] < vals[i + 1])
-                table = page.inner_text("#train-table")
-                assert "no network" in table and "corrected offline" in table
-                page.screenshot(path=str(tmp_path / "train-losses.png"), full_page=True)
-            finally:
-                browser.close()
+        page = chromium.new_page(viewport={"width": 1400, "height": 1100})
+        try:
+            page.goto(server.url + "/")
+            page.wait_for_selector("body[data-ready='1']")
+            page.click(f"#jobs-table tr[data-job-id='{job['id']}'] a.job-link")
+            page.wait_for_selector("svg.loss-plot")
+            assert page.get_attribute("svg.loss-plot", "data-epochs") == str(len(losses))
+            for series in ("train", "validation"):  # one vertex per epoch, in epoch order
+                pts = page.get_attribute(f"svg.loss-plot polyline.loss-{series}", "points").split()
+                xs = [float(p.split(",")[0]) for p in pts]
+                assert len(pts) == len(losses) and xs == sorted(xs) and len(set(xs)) == len(xs)
+            # the plot's vertical order follows the losses (SVG y grows downwards)
+            ys = [float(p.split(",")[1]) for p in page.get_attribute("svg.loss-plot polyline.loss-train", "points").split()]
+            vals = [e["train_loss"] for e in losses]
+            for i in range(len(vals) - 1):
+                if vals[i] != vals[i + 1]:
+                    assert (ys[i] > ys[i + 1]) == (vals[i] < vals[i + 1])
+            table = page.inner_text("#train-table")
+            assert "no network" in table and "corrected offline" in table
+            page.screenshot(path=str(tmp_path / "train-losses.png"), full_page=True)
+        finally:
+            page.close()
     finally:
         server.stop()

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -237,23 +238,42 @@ def run_fit(p: FitParams, ctx: JobContext) -> dict:
 
 
 def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
-    from core.diagnosis import DiagnosisConfig, diagnose_prepared, write_diagnosis
+    from core.diagnosis import DiagnosisConfig, diagnose_prepared
     from core.simulation.replay import ReplayConfig, prepare_session
 
     prepared = prepare_session(ctx.session_path, ReplayConfig(grid=tuple(p.grid)), picked=ctx.picked, callback=ctx.scaled(0.0, 0.1))
     config = DiagnosisConfig(grid=tuple(p.grid), fit_youngs=p.fit_youngs, refine_mesh=p.refine_mesh)
     with ctx.executor() as ex:
         diag = diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.1, 0.98))
-    write_diagnosis(diag, ctx.artifact_dir)
+    return write_diagnose_artifacts(diag, prepared, ctx.artifact_dir, progress=ctx.progress)
+
+
+def write_diagnose_artifacts(diag, prepared, out, progress=None) -> dict:
+    """What a diagnose job leaves in its folder ``out``: ``diagnosis.json``, ``report.md``
+    and its figures, and, when causes were claimed, the viewer's run of the test sequences
+    with the extended model as the corrected mesh (``viewer_run/``).
+
+    Args:
+        diag: a ``core.diagnosis.Diagnosis``. prepared: the session it diagnosed.
+        progress: ``progress(fraction, message)`` or None.
+
+    Returns:
+        the job's summary (the diagnosis's JSON, the first figure's name, the sequences
+        the viewer shows and ``"viewer": true`` when there is a corrected mesh).
+    """
+    from core.diagnosis import write_diagnosis
+
+    write_diagnosis(diag, out)
     summary = diag.to_json()
     summary["plot"] = "residual_maps.png"
     effects = (summary.get("extended") or {}).get("effects") or []
     if effects:
-        ctx.progress(0.99, "corrected meshes (the extended model) for the viewer")
+        if progress is not None:
+            progress(0.99, "corrected meshes (the extended model) for the viewer")
         ym = summary.get("youngs_modulus") or {}
         E = ym.get("value") or ym.get("replay_grid_value_used") or 5000.0
-        summary["corrected_shown"] = _write_extended_run(prepared, tuple(p.grid), float(E), effects,
-                                                         ctx.artifact_dir / VIEWER_RUN)
+        summary["corrected_shown"] = _write_extended_run(prepared, tuple(diag.config.grid), float(E), effects,
+                                                         Path(out) / VIEWER_RUN)
         summary["viewer"] = True
     return summary
 
