@@ -252,6 +252,7 @@ def test_body_size_limits_are_enforced_while_the_body_streams_in(live):
             chunk = bytes(256 * 1024)
         status, body = _read_response(s)
     assert status == 413 and b"larger than" in body
+    print(f"\nchunked upload against a {live.max_upload_bytes} B limit: 413 after {sent} of {total} B sent")
     assert sent < total / 2, f"sent {sent} of {total} bytes before the 413"
 
     # JSON routes have their own small limit
