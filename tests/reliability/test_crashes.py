@@ -21,6 +21,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 
 import httpx
@@ -31,6 +32,13 @@ from tests.app._server import FINAL, Server
 LONG = {"grid": [48, 24, 24]}
 """Replay parameters that keep a worker busy for minutes: the jobs that get killed."""
 SHORT = {"grid": [4, 3, 3]}
+
+
+def _warm() -> None:
+    """On a worker: import what a replay job needs (what its first job would pay for)."""
+    import app.server.jobs.types  # noqa: F401
+    import app.viewer.data  # noqa: F401
+    import core.simulation.replay  # noqa: F401
 
 
 def _busy(dask_worker) -> tuple[int, list[str]]:
@@ -88,7 +96,10 @@ def _submit(c: httpx.Client, session_id: int, params: dict) -> dict:
 def test_killed_worker_then_killed_server(cluster, tiny_session, tmp_path):
     lc, dask_client = cluster
     data = tmp_path / "data"
+    warming = threading.Thread(target=dask_client.run, args=(_warm,))  # the workers import while the server starts
+    warming.start()
     server = Server(data, args=["--scheduler", lc.scheduler_address])
+    warming.join()
     try:
         c = httpx.Client(base_url=server.url, timeout=60)
         sid = c.post("/api/sessions", json={"path": str(tiny_session)}).raise_for_status().json()["id"]
