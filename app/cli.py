@@ -124,7 +124,9 @@ def cmd_replay(args) -> int:
 
 def cmd_demo(args) -> int:
     """Generate the demo session if absent, replay it, and replay the shared sample session;
-    then (unless ``--no-serve``) open the workbench on them, the demo replay run as a job."""
+    then (unless ``--no-serve``) open the workbench on them, the demo replay run as a job
+    first, then the demo's analyses (``app.cli_serve.demo_analyses``: sweep, fit, diagnose,
+    train) one after another."""
     from core.io import read_session
     from core.lab import generate_session
 
@@ -286,7 +288,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_execution_options(p)
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("demo", help="generate (once) and replay the demo session, then the shared sample session")
+    p = sub.add_parser("demo", help="generate (once) and replay the demo session and the shared sample session, "
+                                    "then open the workbench and run the analyses on the demo session")
     p.add_argument("--data", default=str(DEFAULT_DATA), help="data directory (default ./data)")
     p.add_argument("--sample", default=str(Path("..") / "shared" / "sample-session"), help="a session from another tool to replay too")
     p.add_argument("--no-serve", action="store_true", help="stop after the replays instead of opening the workbench")

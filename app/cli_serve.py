@@ -82,24 +82,95 @@ def _register(client, path: Path, name: str) -> int:
     return client.post("/api/sessions", json={"path": folder, "name": name}).raise_for_status().json()["id"]
 
 
-def _replay_job(client, session_id: int, params: dict) -> tuple[int, bool]:
-    """A replay job of the session with exactly these parameters: a finished (or still
-    active) one is reused, else one is submitted. Returns (job id, reused)."""
-    from app.server.jobs.types import ReplayParams
+FINAL = ("done", "failed", "cancelled", "interrupted")
 
-    wanted = ReplayParams.model_validate({**params, "session_id": session_id}).model_dump(mode="json")
-    for status in ("done", "running", "queued"):
-        for job in client.get("/api/jobs", params={"type": "replay", "status": status}).raise_for_status().json():
-            if job["session_id"] == session_id and job["params"] == wanted:
-                return job["id"], True
-    r = client.post("/api/jobs", json={"type": "replay", "params": wanted})
-    return r.raise_for_status().json()["id"], False
+
+def demo_analyses(replay_params: dict) -> list[tuple[str, dict]]:
+    """The analyses ``tissuetwin demo`` runs on the demo session after its replay, in
+    order, as (job type, parameters without ``session_id``). Sized for minutes on two
+    cores, not hours:
+
+    * sweep: the paper's grid search (Wu et al. 2020, Tables 1-2): the decades 1e1-1e6 Pa,
+      then the 2.5/5/7.5 fine grid around the best, on the train sequences;
+    * fit: E with its 95 % interval, or the reason it cannot be identified;
+    * diagnose: what the base model lacks, with the E fit (the defaults);
+    * train: the 2D correction network at the replay's E with narrow widths (16 32 64
+      instead of the paper's 64 128 256), at most 6 epochs (patience 3), 512 measured
+      points per frame in the loss; its test sequences give the viewer's corrected mesh.
+
+    The model options of the demo's replay (Poisson's ratio, grid, effects) carry over.
+    """
+    model = {k: replay_params[k] for k in ("poisson_ratio", "grid", "effects") if replay_params.get(k) is not None}
+    return [
+        ("sweep", {**model, "e_min": 10.0, "e_max": 1e6, "per_decade": 1, "refine": True}),
+        ("fit", dict(model)),
+        ("diagnose", {k: v for k, v in model.items() if k == "grid"}),
+        ("train", {**model, "model": "2d", "youngs_modulus": replay_params.get("youngs_modulus", 5000.0),
+                   "widths": [16, 32, 64], "epochs": 6, "patience": 3, "max_points": 512}),
+    ]
+
+
+def _job(client, job_type: str, session_id: int, params: dict) -> tuple[dict, str]:
+    """The job of this type on the session with exactly these parameters: one that is
+    done, failed, running or queued is reused; else (none, or only interrupted or
+    cancelled ones) one is submitted. Returns (job, how) with how "reused",
+    "submitted", or "resubmitted" when an earlier one was interrupted or cancelled."""
+    from app.server.jobs.types import default_registry
+
+    model = default_registry().get(job_type).params
+    wanted = model.model_validate({**params, "session_id": session_id}).model_dump(mode="json")
+    same = [j for j in client.get("/api/jobs", params={"type": job_type}).raise_for_status().json()
+            if j["session_id"] == session_id and j["params"] == wanted]
+    for status in ("done", "running", "queued", "failed"):
+        for job in same:
+            if job["status"] == status:
+                return job, "reused"
+    job = client.post("/api/jobs", json={"type": job_type, "params": wanted}).raise_for_status().json()
+    lost = [j for j in same if j["status"] in ("interrupted", "cancelled")]
+    if lost:
+        return job, f"resubmitted: job {lost[0]['id']} was {lost[0]['status']} ({lost[0]['error']})"
+    return job, "submitted"
+
+
+def _wait_final(client, job_id: int, stop: threading.Event) -> dict | None:
+    """Poll a job until it ends; None when the workbench stops first."""
+    while not stop.wait(0.5):
+        job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
+        if job["status"] in FINAL:
+            return job
+    return None
+
+
+def _outcome(job: dict) -> str:
+    """One line on what a finished demo analysis found."""
+    r = job.get("result") or {}
+    if job["status"] != "done":
+        return f"{job['status']}: {job['error']}"
+    if job["type"] == "sweep":
+        return f"best E {r.get('best'):g} Pa of {len(r.get('table', []))} values" if r.get("best") else "no finite error"
+    if job["type"] == "fit":
+        y = r.get("youngs_modulus") or {}
+        if y.get("identifiable"):
+            lo, hi = y["interval"]
+            return f"E = {y['value']:.4g} Pa (95 % interval {lo:.4g}-{hi:.4g} Pa)"
+        return f"E not identifiable: {y.get('reason')}"
+    if job["type"] == "diagnose":
+        kinds = [c.get("kind") for c in r.get("causes") or []]
+        return "causes: " + ", ".join(kinds) if kinds else "no effect found"
+    if job["type"] == "train":
+        te = r.get("test_error") or {}
+        mm = {k: "N/A" if te.get(k) is None else f"{te[k] * 1e3:.3f} mm" for k in ("no_network", "corrected", "corrected_offline")}
+        return (f"test error {mm['no_network']} without the network, {mm['corrected']} corrected in the loop, "
+                f"{mm['corrected_offline']} offline")
+    return "done"
 
 
 def _prepare_demo(url: str, sessions: list[tuple[Path, str]], replay_params: dict, ready: threading.Event,
                   stop: threading.Event) -> None:
     """Over the REST API, once the server answers: register the sessions, get the demo
-    replay job (the first session's), show it in the viewer when done. Prints what it does."""
+    replay job (the first session's) and show it in the viewer when done, then run the
+    :func:`demo_analyses` one after another (each reused when an identical one exists),
+    showing the train job's corrected mesh when it is done. Prints what it does."""
     import httpx
 
     try:
@@ -107,29 +178,44 @@ def _prepare_demo(url: str, sessions: list[tuple[Path, str]], replay_params: dic
             return
         with httpx.Client(base_url=url, timeout=60) as client:
             ids = [_register(client, path, name) for path, name in sessions]
-            job_id, reused = _replay_job(client, ids[0], replay_params)
-            print(f"demo session = session {ids[0]}; replay job {job_id} "
-                  f"({'reused' if reused else 'submitted'}): {url}/#job-{job_id}", flush=True)
-            while not stop.wait(0.5):
-                job = client.get(f"/api/jobs/{job_id}").raise_for_status().json()
-                if job["status"] in ("done", "failed", "cancelled", "interrupted"):
-                    break
-            else:
+            job, how = _job(client, "replay", ids[0], replay_params)
+            print(f"demo session = session {ids[0]}; replay job {job['id']} ({how}); dashboard {url}/", flush=True)
+            job = _wait_final(client, job["id"], stop)
+            if job is None:
                 return
             if job["status"] != "done":
-                print(f"demo replay job {job_id} {job['status']}: {job['error']}", file=sys.stderr, flush=True)
+                print(f"demo replay job {job['id']} {job['status']}: {job['error']}", file=sys.stderr, flush=True)
                 return
-            if client.get("/api/viewer").json().get("enabled"):
-                client.post("/api/viewer/show", json={"job_id": job_id})
-            print(f"demo replay job {job_id} done; open {url}/ (Ctrl-C stops the workbench)", flush=True)
+            viewer = client.get("/api/viewer").json().get("enabled")
+            if viewer:
+                client.post("/api/viewer/show", json={"job_id": job["id"]})
+            print(f"demo replay job {job['id']} done; open {url}/ (Ctrl-C stops the workbench)", flush=True)
+            plan = demo_analyses(replay_params)
+            print("demo analyses, one after another: " + ", ".join(t for t, _ in plan)
+                  + " (the dashboard shows each result as it finishes)", flush=True)
+            for job_type, params in plan:
+                job, how = _job(client, job_type, ids[0], params)
+                print(f"demo {job_type} job {job['id']} ({how})", flush=True)
+                if job["status"] not in FINAL:
+                    job = _wait_final(client, job["id"], stop)
+                    if job is None:
+                        return
+                print(f"demo {job_type} job {job['id']}: {_outcome(job)}", flush=True)
+                if viewer and job["status"] == "done" and job_type == "train" and (job.get("result") or {}).get("viewer"):
+                    client.post("/api/viewer/show", json={"job_id": job["id"]})
+                    print(f"the viewer now shows job {job['id']}'s corrected mesh", flush=True)
+            print("demo analyses finished", flush=True)
     except Exception as exc:  # noqa: BLE001 - the server keeps running; the user sees why the demo job is missing
-        print(f"could not prepare the demo job: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
+        if not stop.wait(5):  # a request cut by Ctrl-C is no error: the shut-down sets ``stop`` soon after
+            print(f"could not prepare the demo jobs: {type(exc).__name__}: {exc}", file=sys.stderr, flush=True)
 
 
 def serve_demo(data_dir: Path, sessions: list[tuple[Path, str]], replay_params: dict, *,
                host: str = "127.0.0.1", port: int | None = None) -> int:
     """Serve the workbench on ``data_dir`` until Ctrl-C (or SIGTERM), with ``sessions``
-    (folder, name) registered and a replay job of the first one run (or reused).
+    (folder, name) registered, a replay job of the first one run (or reused) and shown in
+    the viewer, then the :func:`demo_analyses` of it run one after another. Ctrl-C leaves
+    unfinished jobs ``interrupted``; the next demo runs them again and says so.
 
     Args:
         replay_params: parameters of the replay job (``ReplayParams`` without ``session_id``).

@@ -5,6 +5,7 @@ import os
 import re
 import signal
 import socket
+import sqlite3
 import subprocess
 import time
 from pathlib import Path
@@ -88,10 +89,12 @@ def _ctrl_c(proc) -> None:
 @pytest.mark.slow
 def test_readme_main_command_runs(tmp_path):
     """Runs the README's main command verbatim from the repository root, as a user would:
-    the demo replays, then the workbench opens on the demo session with its replay job run.
-    The test waits until the dashboard answers on loopback and that job is done (REST),
-    then presses Ctrl-C (SIGINT to the command and its workers, as a terminal does) and
-    checks the command exits cleanly. The demo data go to a temporary folder (TISSUETWIN_DATA) and
+    the demo replays, then the workbench opens on the demo session with its replay job run,
+    and queues the demo's analyses after it. The test waits until the dashboard answers on
+    loopback, that job is done and the first analysis (the sweep) is queued or running
+    (REST), then presses Ctrl-C (SIGINT to the command and its workers, as a terminal does)
+    and checks the command exits cleanly, without worker tracebacks, leaving the sweep
+    ``interrupted`` in the database with the reason. The demo data go to a temporary folder (TISSUETWIN_DATA) and
     the workbench to a free port (TISSUETWIN_PORT) so the checkout and port 8000 stay free."""
     main_cmd, _ = _commands()
     data = tmp_path / "data"
@@ -123,13 +126,26 @@ def test_readme_main_command_runs(tmp_path):
         if (ROOT.parent / "shared" / "sample-session" / "session.json").exists():
             assert (data / "runs" / "sample-replay" / "replay.json").exists()
             assert any(s["name"] == "sample-session" for s in _get(f"{url}/api/sessions"))
+        sweep = _wait_for("the demo sweep queued after the replay", lambda: [
+            j for j in _get(f"{url}/api/jobs?type=sweep") or [] if j["session_id"] == demo_id], proc, log, timeout=120)[0]
+        assert sweep["params"]["refine"] and sweep["status"] in ("queued", "running"), sweep
 
+        t0 = time.monotonic()
         _ctrl_c(proc)
         rc = proc.wait(timeout=120)
+        print(f"exit {time.monotonic() - t0:.1f} s after Ctrl-C with the sweep {sweep['status']}")
         text = log.read_text()
         assert rc == 0, text[-4000:]
         assert "mean error (mm)" in text and "workbench stopped" in text
+        assert "Traceback" not in text and "KeyboardInterrupt" not in text, text[-4000:]
         assert _get(f"{url}/api/health") is None  # nothing left listening
+        db = sqlite3.connect(data / "workbench.db")
+        try:
+            status, error = db.execute("select status, error from jobs where id = ?", (sweep["id"],)).fetchone()
+            active = db.execute("select count(*) from jobs where status in ('queued', 'running')").fetchone()[0]
+        finally:
+            db.close()
+        assert status == "interrupted" and "server stopped" in error and active == 0
     finally:
         try:  # the command if still running, and whatever of its group is left (Dask workers)
             os.killpg(proc.pid, signal.SIGKILL)

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import threading
 import time
 import traceback as tb_module
 import uuid
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +67,25 @@ def execute_job(token: str, job_id: int, run, params_cls, params: dict, artifact
     return run(params_cls.model_validate(params), ctx)
 
 
+@contextmanager
+def _sigint_ignored():
+    """Ignore SIGINT while local workers are spawned (main thread only; elsewhere a no-op).
+
+    Ctrl-C in a terminal signals the whole foreground process group, the Dask worker
+    processes included, which then print KeyboardInterrupt tracebacks while the server
+    shuts them down. A process started while SIGINT is ignored inherits that, and Python
+    installs its KeyboardInterrupt handler only over the default disposition.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 QUEUED_POLL = 1.0
 """Seconds between two looks at a job that has not started yet."""
 
@@ -105,8 +126,9 @@ class JobRunner:
         if address:
             self.client = Client(address)
             return
-        # non-daemonic workers: jobs may start processes (the virtual lab's simulation pool)
-        with dask.config.set({"distributed.worker.daemon": False}):
+        # non-daemonic workers: jobs may start processes (the virtual lab's simulation pool);
+        # workers that ignore Ctrl-C: the server alone handles it and closes the cluster
+        with dask.config.set({"distributed.worker.daemon": False}), _sigint_ignored():
             self.cluster = LocalCluster(
                 n_workers=self.settings.workers, threads_per_worker=1, processes=True,
                 dashboard_address=None, silence_logs=logging.ERROR,
