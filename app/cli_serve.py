@@ -87,26 +87,30 @@ FINAL = ("done", "failed", "cancelled", "interrupted")
 
 def demo_analyses(replay_params: dict) -> list[tuple[str, dict]]:
     """The analyses ``tissuetwin demo`` runs on the demo session after its replay, in
-    order, as (job type, parameters without ``session_id``). Sized for minutes on two
-    cores, not hours:
+    order, as (job type, parameters without ``session_id``); the quick ones first:
 
     * sweep: the paper's grid search (Wu et al. 2020, Tables 1-2): the decades 1e1-1e6 Pa,
       then the 2.5/5/7.5 fine grid around the best, on the train sequences;
-    * fit: E with its 95 % interval, or the reason it cannot be identified;
-    * diagnose: what the base model lacks, with the E fit (the defaults);
     * train: the 2D correction network at the replay's E with narrow widths (16 32 64
       instead of the paper's 64 128 256), at most 6 epochs (patience 3), 512 measured
-      points per frame in the loss; its test sequences give the viewer's corrected mesh.
+      points per frame in the loss; its test sequences give the viewer's corrected mesh;
+    * fit: E with its 95 % interval, or the reason it cannot be identified (the defaults);
+    * diagnose: what the base model lacks, with the E fit (the defaults).
+
+    Measured on the 2-core development machine while other work loaded it (load average
+    15-19): sweep 2.0 min, train 2.2 min, fit 3.7 min, diagnose 24 min (32 min from the
+    sweep's start to the last result; 23 CPU minutes, three quarters of them the
+    diagnosis).
 
     The model options of the demo's replay (Poisson's ratio, grid, effects) carry over.
     """
     model = {k: replay_params[k] for k in ("poisson_ratio", "grid", "effects") if replay_params.get(k) is not None}
     return [
         ("sweep", {**model, "e_min": 10.0, "e_max": 1e6, "per_decade": 1, "refine": True}),
-        ("fit", dict(model)),
-        ("diagnose", {k: v for k, v in model.items() if k == "grid"}),
         ("train", {**model, "model": "2d", "youngs_modulus": replay_params.get("youngs_modulus", 5000.0),
                    "widths": [16, 32, 64], "epochs": 6, "patience": 3, "max_points": 512}),
+        ("fit", dict(model)),
+        ("diagnose", {k: v for k, v in model.items() if k == "grid"}),
     ]
 
 
