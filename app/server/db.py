@@ -21,13 +21,21 @@ from sqlalchemy.types import TypeDecorator
 from app.server.errors import Invalid
 
 __all__ = ["Base", "SessionRecord", "JobRecord", "ACTIVE", "FINAL", "UTCDateTime", "json_dumps", "normalize_url",
-           "make_engine", "make_sessionmaker", "mark_interrupted", "utcnow"]
+           "MAX_ID", "valid_id", "make_engine", "make_sessionmaker", "mark_interrupted", "utcnow"]
 
 #: Job statuses. ``interrupted``: the server stopped while the job was queued or running.
 QUEUED, RUNNING, DONE, FAILED, CANCELLED, INTERRUPTED = "queued", "running", "done", "failed", "cancelled", "interrupted"
 ACTIVE = (QUEUED, RUNNING)
 FINAL = (DONE, FAILED, CANCELLED, INTERRUPTED)
 
+
+MAX_ID = 2**63 - 1
+"""Largest id a row can have (SQLite and PostgreSQL 64-bit integers)."""
+
+
+def valid_id(value: int) -> bool:
+    """True if ``value`` can be a row id; a larger int would make the driver raise."""
+    return 1 <= value <= MAX_ID
 
 
 def utcnow() -> dt.datetime:
