@@ -14,7 +14,10 @@ def cmd_diagnose(args) -> int:
 
     config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
-        diag = diagnose(args.session, config, executor=ex, callback=cb)
+        if args.network:
+            diag = _diagnose_with_network(args, config, ex, cb)
+        else:
+            diag = diagnose(args.session, config, executor=ex, callback=cb)
     out = write_diagnosis(diag, args.out)
     console = Console()
     if diag.causes:
@@ -22,6 +25,11 @@ def cmd_diagnose(args) -> int:
             console.print(f"cause: [bold]{c.kind}[/bold] {c.parameters} (confidence {c.confidence:.2f}, test gain {100 * (c.gain or 0):.1f} %)")
     else:
         console.print("[bold]no effect found[/bold] beyond noise and model-form error")
+    if diag.learned_correction:
+        lc = diag.learned_correction
+        shares = ", ".join(f"{c['kind']} {100 * c['share']:.0f} %" for c in lc["causes"][:3])
+        console.print(f"learned correction ({lc['correction_rms_m'] * 1e3:.3f} mm RMS): best matched by {shares}"
+                      + (f"; the claimed causes account for {100 * lc['claimed_share']:.0f} %" if lc["claimed_share"] is not None else ""))
     for group in diag.confounded:
         console.print(f"confounded, not picked: {' / '.join(group)}")
     lo, hi = diag.gain_interval
@@ -31,6 +39,26 @@ def cmd_diagnose(args) -> int:
     )
     print(f"{diag.simulations} simulations in {diag.timings['total']:.0f} s; wrote {out}/diagnosis.json and {out}/report.md")
     return 0
+
+
+def _diagnose_with_network(args, config, ex, cb):
+    """Diagnose, then explain the checkpoint's correction field on the test sequences."""
+    from core.diagnosis import diagnose_prepared
+    from core.diagnosis.explain import explain_diagnosis
+    from core.learning import build_frames, correction_field, load_checkpoint
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    ck = load_checkpoint(args.network)  # first: a bad checkpoint fails before minutes of work
+    prepared = prepare_session(args.session, ReplayConfig(grid=config.grid), callback=lambda f, m: cb(0.05 * f, m))
+    diag = diagnose_prepared(prepared, config, executor=ex, callback=lambda f, m: cb(0.05 + 0.85 * f, m))
+    cb(0.9, "explaining the learned correction")
+    replay = ck.replay_config()
+    tests = [n for n, s in prepared.sequences.items() if s.role == "test"]
+    frames = build_frames(prepared, replay, names=tests)
+    correction = {n: correction_field(ck, frames[n]) for n in tests}
+    diag = explain_diagnosis(diag, prepared, correction, replay, executor=ex)
+    cb(1.0, "done")
+    return diag
 
 
 def register(sub) -> None:
@@ -43,5 +71,7 @@ def register(sub) -> None:
     p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="replay grid (default 13 5 5)")
     p.add_argument("--no-youngs", action="store_true", help="keep E at 5e3 Pa instead of fitting it with the claimed causes")
     p.add_argument("--no-mesh-refinement", action="store_true", help="fit E on the replay grid only")
+    p.add_argument("--network", metavar="CHECKPOINT",
+                   help="a trained correction network (tissuetwin train): report how much of its correction each cause accounts for")
     _add_execution_options(p)
     p.set_defaults(func=cmd_diagnose)

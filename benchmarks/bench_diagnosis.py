@@ -4,7 +4,10 @@ Prints the confusion matrix (true kind x named kinds), the mean relative paramet
 error of correctly named causes, the mean test gain and the wall time per diagnosis.
 
     .venv/bin/python benchmarks/bench_diagnosis.py [--seeds 0 1 2] [--kinds gravity none ...]
-        [--duration 10] [--workers 2]
+        [--duration 10] [--workers 2] [--sessions DIR] [--json OUT]
+
+``--sessions DIR`` keeps the generated sessions there and reuses them on the next run
+(generation is half the time); ``--json OUT`` writes every case's diagnosis.json.
 
 Sessions are the `small` preset (4 sequences: train x 2, validation, test) with
 ``--duration`` s per sequence; magnitudes are those of ``HIDDEN`` below, with the
@@ -64,20 +67,29 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--no-youngs", action="store_true", help="skip the E fit (faster)")
+    ap.add_argument("--sessions", type=Path, help="keep (and reuse) the generated sessions in this folder")
+    ap.add_argument("--json", type=Path, help="write every case's diagnosis.json into this file")
     args = ap.parse_args()
     labels = list(KINDS) + ["none"]
     confusion = {k: {j: 0 for j in labels} for k in args.kinds}
     perr, gains, times = [], [], []
     lab = replace(PRESETS["small"], sequence_durations=(args.duration,) * 4)
+    results = {}
     with tempfile.TemporaryDirectory() as tmp, executor(workers=args.workers) as ex:
+        root = args.sessions or Path(tmp)
         for kind in args.kinds:
             for seed in args.seeds:
                 effects = hidden(kind, seed)
-                path = generate_session(Path(tmp) / f"{kind}-{seed}", preset=lab, seed=seed, effects=effects)
+                path = root / f"{kind}-{seed}-{args.duration:g}s"
+                if not (path / "session.json").exists():
+                    generate_session(path, preset=lab, seed=seed, effects=effects, overwrite=True)
                 t0 = time.perf_counter()
                 d = diagnose(path, DiagnosisConfig(fit_youngs=not args.no_youngs, refine_mesh=False), executor=ex)
                 dt = time.perf_counter() - t0
                 times.append(dt)
+                results[f"{kind}-{seed}"] = {"hidden": effects, "wall_time_s": dt, "diagnosis": d.to_json()}
+                if args.json:
+                    args.json.write_text(json.dumps(results, indent=1, default=float))
                 named = [c.kind for c in d.causes] or ["none"]
                 for n in named:
                     confusion[kind][n] += 1

@@ -37,7 +37,7 @@ from core.simulation import effect_from_dict
 from core.simulation.replay import PreparedSession, ReplayConfig, build_replay_model
 from core.simulation.solver import simulate
 
-__all__ = ["CauseShare", "CorrectionExplanation", "explain_correction"]
+__all__ = ["CauseShare", "CorrectionExplanation", "explain_correction", "explain_diagnosis"]
 
 
 @dataclass(frozen=True)
@@ -188,3 +188,15 @@ def explain_correction(
         sequences=names, frames=frames, correction_rms=float(np.sqrt(cc / c.size)), causes=shares,
         claimed_share=claimed_share, unexplained_share=1.0 - (claimed_share or 0.0),
     )
+
+
+def explain_diagnosis(diag, prepared: PreparedSession, correction: Mapping[str, np.ndarray], config: ReplayConfig,
+                      *, executor: Executor | None = None):
+    """A copy of the :class:`core.diagnosis.engine.Diagnosis` ``diag`` with the learned
+    correction explained (its ``learned_correction``): the correction is projected onto
+    every candidate as fitted against the base model (selection round 0) and onto the
+    claimed causes jointly. Arguments and errors as :func:`explain_correction`."""
+    causes = [{"kind": c.kind, **c.parameters} for c in diag.candidates if c.round == 0]
+    claimed = [{"kind": c.kind, **c.parameters} for c in diag.causes]
+    ex = explain_correction(prepared, correction, config, causes, claimed=claimed, executor=executor)
+    return replace(diag, learned_correction=ex.to_json())

@@ -1,14 +1,20 @@
 """Residual fields: where and when the replayed surface disagrees with the measured one.
 
-The observable is the top face, which the camera sees from above: per frame, every
-measured point over the top face's interior gets its signed vertical residual
-``z_point - z_model(x, y)`` (:func:`core.identification.residuals.top_residuals`; on the
-top face this is the signed distance along the surface normal to first order), and the
-residuals are averaged in a fixed grid of bins on the rest top face. A run of the model
-is thus an (F, B) field of bin means with fixed (F, B) point counts, which is what the
-candidate signatures and fits of :mod:`core.diagnosis.engine` work on. Side faces are
-seen at grazing angles by the cameras of this field and are left out of the fits; the
-paper's point-to-mesh error, which includes them, is what gains are reported in.
+The observable is the measured surface's signed distance to the model along the face
+normal, binned on the faces of the rest box:
+
+- **top face**: every measured point over the top face's interior gets its signed
+  vertical residual ``z_point - z_model(x, y)`` (:func:`core.identification.residuals.top_residuals`);
+- **side faces** (``FieldLayout.side_rows > 0``): a point whose nearest rest face is a
+  side face, within 10 mm of it and away from its edges, gets ``(p - model) . n`` with
+  ``n`` the face's outward normal and the model face interpolated the same way
+  (:func:`face_residuals`). The cameras of this field see sides at grazing angles, so
+  each face has its own noise level (``residual_field`` returns the scatter per face).
+
+Residuals are averaged in a fixed grid of bins on the rest faces. A run of the model is
+thus an (F, B) field of bin means with fixed (F, B) point counts, which is what the
+candidate signatures and fits of :mod:`core.diagnosis.engine` work on. Positive means
+the measured surface lies outside the model's.
 
 Noise is separated from systematic error by the scatter of points inside a bin and
 frame: for a smooth surface that scatter is the sensor noise, and a bin mean of ``n``
@@ -21,49 +27,165 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.identification.residuals import top_residuals
 
-__all__ = ["FieldLayout", "frame_bins", "residual_field", "phase_labels", "PHASES"]
+__all__ = ["FieldLayout", "FACES", "face_residuals", "frame_bins", "residual_field", "phase_labels", "PHASES"]
 
 PHASES = ("rest", "loading", "holding", "unloading", "sliding")
 """Labels of :func:`phase_labels`, in this order."""
 
+FACES = ("top", "-x", "+x", "-y", "+y")
+"""Faces of the residual field, in bin order: (normal axis, at the high end) of each."""
+_FACE_AXIS = {"top": (2, True), "-x": (0, False), "+x": (0, True), "-y": (1, False), "+y": (1, True)}
+
 
 @dataclass(frozen=True)
 class FieldLayout:
-    """A grid of bins over the interior of the rest top face.
+    """A grid of bins over the interior of the rest top face, and optionally the sides.
+
+    Bin order: the top's ``bins[0] x bins[1]`` bins (x-major), then, with
+    ``side_rows > 0``, the faces -x and +x (``bins[1] x side_rows`` bins over (y, z),
+    y-major) and -y and +y (``bins[0] x side_rows`` over (x, z), x-major).
 
     Attributes:
         size: (3,) phantom box size, m.
         bins: (bx, by) number of bins along x and y.
-        margin: bins start this far (m) from the face's edges (as ``top_residuals``).
+        margin: bins start this far (m) from the faces' edges (as ``top_residuals``).
+        side_rows: bins along z on each side face (0: top face only).
     """
 
     size: tuple[float, float, float]
     bins: tuple[int, int] = (16, 8)
     margin: float = 0.004
+    side_rows: int = 0
+
+    @property
+    def top_bins(self) -> int:
+        return int(self.bins[0] * self.bins[1])
+
+    def _face_shape(self, face: str) -> tuple[int, int]:
+        bx, by = self.bins
+        return {"top": (bx, by), "-x": (by, self.side_rows), "+x": (by, self.side_rows),
+                "-y": (bx, self.side_rows), "+y": (bx, self.side_rows)}[face]
+
+    def faces(self) -> tuple[str, ...]:
+        """The faces that have bins, in bin order."""
+        return FACES if self.side_rows > 0 else FACES[:1]
+
+    def face_offsets(self) -> dict[str, int]:
+        """First bin index of each face."""
+        out, k = {}, 0
+        for f in self.faces():
+            out[f] = k
+            a, b = self._face_shape(f)
+            k += a * b
+        return out
 
     @property
     def n_bins(self) -> int:
-        return int(self.bins[0] * self.bins[1])
+        return int(sum(a * b for a, b in (self._face_shape(f) for f in self.faces())))
+
+    def face_of_bin(self) -> np.ndarray:
+        """(B,) index into :data:`FACES` of each bin's face."""
+        out = np.zeros(self.n_bins, dtype=np.int64)
+        for f, k in self.face_offsets().items():
+            a, b = self._face_shape(f)
+            out[k:k + a * b] = FACES.index(f)
+        return out
+
+    def _edges(self, face: str) -> tuple[int, int, np.ndarray, np.ndarray]:
+        """In-plane axes (u, v) of a face and its bin edges along them, m."""
+        axis, _ = _FACE_AXIS[face]
+        u, v = [a for a in (0, 1, 2) if a != axis]
+        nu, nv = self._face_shape(face)
+        m = self.margin
+        return u, v, np.linspace(m, self.size[u] - m, nu + 1), np.linspace(m, self.size[v] - m, nv + 1)
 
     def centres(self) -> np.ndarray:
-        """(B, 2) bin centres (x, y), m, phantom frame, x-major order."""
-        bx, by = self.bins
-        ex = np.linspace(self.margin, self.size[0] - self.margin, bx + 1)
-        ey = np.linspace(self.margin, self.size[1] - self.margin, by + 1)
-        cx, cy = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
-        return np.stack(np.meshgrid(cx, cy, indexing="ij"), axis=-1).reshape(-1, 2)
+        """(B, 2) top-face bin centres (x, y), m, phantom frame, x-major order (top bins only)."""
+        return self.centres3()[: self.top_bins, :2]
+
+    def centres3(self) -> np.ndarray:
+        """(B, 3) bin centres on the rest faces, m, phantom frame, in bin order."""
+        out = []
+        for f in self.faces():
+            axis, high = _FACE_AXIS[f]
+            u, v, eu, ev = self._edges(f)
+            cu, cv = 0.5 * (eu[1:] + eu[:-1]), 0.5 * (ev[1:] + ev[:-1])
+            gu, gv = np.meshgrid(cu, cv, indexing="ij")
+            c = np.zeros((gu.size, 3))
+            c[:, u], c[:, v] = gu.ravel(), gv.ravel()
+            c[:, axis] = self.size[axis] if high else 0.0
+            out.append(c)
+        return np.concatenate(out)
 
     def index(self, points: np.ndarray) -> np.ndarray:
-        """(M,) bin index of each (M, 3) point, -1 where ``top_residuals`` drops it."""
+        """(M,) bin index of each (M, 3) point, -1 where no face takes it.
+
+        The top takes what ``top_residuals`` keeps (interior, within 10 mm below the
+        top); a side face takes, of the rest, points whose nearest rest face it is,
+        within 10 mm of it and ``margin`` from its edges."""
         p = np.asarray(points, dtype=np.float64)
         m, (sx, sy, sz) = self.margin, self.size
         keep = (p[:, 0] > m) & (p[:, 0] < sx - m) & (p[:, 1] > m) & (p[:, 1] < sy - m) & (p[:, 2] > sz - 0.010)
         bx, by = self.bins
         i = np.clip(((p[:, 0] - m) / (sx - 2 * m) * bx).astype(int), 0, bx - 1)
         j = np.clip(((p[:, 1] - m) / (sy - 2 * m) * by).astype(int), 0, by - 1)
-        return np.where(keep, i * by + j, -1)
+        out = np.where(keep, i * by + j, -1)
+        if self.side_rows <= 0 or p.shape[0] == 0:
+            return out
+        dist = np.column_stack([np.abs(p[:, 2] - sz), np.abs(p[:, 0]), np.abs(sx - p[:, 0]),
+                                np.abs(p[:, 1]), np.abs(sy - p[:, 1])])
+        nearest = np.argmin(dist, axis=1)
+        offsets = self.face_offsets()
+        for fi, f in enumerate(FACES[1:], start=1):
+            _, _, eu, ev = self._edges(f)
+            u, v = [a for a in (0, 1, 2) if a != _FACE_AXIS[f][0]]
+            nu, nv = len(eu) - 1, len(ev) - 1
+            take = (~keep) & (nearest == fi) & (dist[:, fi] < 0.010)
+            take &= (p[:, u] > eu[0]) & (p[:, u] < eu[-1]) & (p[:, v] > ev[0]) & (p[:, v] < ev[-1])
+            a = np.clip(((p[:, u] - eu[0]) / (eu[-1] - eu[0]) * nu).astype(int), 0, nu - 1)
+            b = np.clip(((p[:, v] - ev[0]) / (ev[-1] - ev[0]) * nv).astype(int), 0, nv - 1)
+            out = np.where(take, offsets[f] + a * nv + b, out)
+        return out
+
+
+def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: str) -> np.ndarray:
+    """Signed normal residuals (m) of measured points against one face of the model.
+
+    Args:
+        points: (M, 3) measured points already assigned to ``face``, m, phantom frame.
+        positions: (N, 3) node positions of the grid mesh (grid-major order), m.
+        grid: (nx, ny, nz). size: (3,) box size, m. face: one of :data:`FACES`.
+
+    Returns:
+        (M,) ``(p - model) . n`` for the face's outward normal ``n``: the point's normal
+        coordinate minus the model face's, bilinear in the face's deformed nodes (cells
+        located on the rest grid, in-plane node motion corrected to first order), as
+        ``top_residuals`` does for the top.
+    """
+    axis, high = _FACE_AXIS[face]
+    u, v = [a for a in (0, 1, 2) if a != axis]
+    g = [int(n) for n in grid]
+    nodes = positions.reshape(g[0], g[1], g[2], 3)
+    sl = [slice(None)] * 3
+    sl[axis] = -1 if high else 0
+    fn = nodes[tuple(sl)]  # (n_u, n_v, 3): the remaining axes keep their order u < v
+    nu, nv = g[u], g[v]
+    hu, hv = size[u] / (nu - 1), size[v] / (nv - 1)
+
+    def interp(fld, a, b):
+        s, t = a / hu, b / hv
+        i = np.clip(np.floor(s).astype(int), 0, nu - 2)
+        j = np.clip(np.floor(t).astype(int), 0, nv - 2)
+        wa, wb = s - i, t - j
+        return ((1 - wa) * (1 - wb) * fld[i, j] + wa * (1 - wb) * fld[i + 1, j]
+                + (1 - wa) * wb * fld[i, j + 1] + wa * wb * fld[i + 1, j + 1])
+
+    p = np.asarray(points, dtype=np.float64)
+    a = p[:, u] - interp(fn[:, :, u] - np.linspace(0, size[u], nu)[:, None], p[:, u], p[:, v])
+    b = p[:, v] - interp(fn[:, :, v] - np.linspace(0, size[v], nv)[None, :], p[:, u], p[:, v])
+    r = p[:, axis] - interp(fn[:, :, axis], a, b)
+    return r if high else -r
 
 
 def frame_bins(clouds, layout: FieldLayout) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
@@ -86,8 +208,8 @@ def frame_bins(clouds, layout: FieldLayout) -> tuple[list[np.ndarray], list[np.n
     return pts, idx, counts
 
 
-def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bins, counts) -> tuple[np.ndarray, float, int]:
-    """Bin means of the signed top residuals of one simulated sequence.
+def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bins, counts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bin means of the signed normal residuals of one simulated sequence.
 
     Args:
         positions: (F, N, 3) simulated node positions, m, phantom frame.
@@ -95,22 +217,29 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
 
     Returns:
         (field (F, B) float64 mean residual per bin, m (0 where a bin is empty or the
-        frame diverged), within-bin sum of squared deviations, m^2, and its degrees of
-        freedom): the last two estimate the noise variance.
+        frame diverged); per face of :data:`FACES`, the within-bin sum of squared
+        deviations (5,) m^2 and its degrees of freedom (5,)): the last two estimate
+        each face's noise variance.
     """
     F, B = counts.shape
     field = np.zeros((F, B))
-    ss, dof = 0.0, 0
+    ss, dof = np.zeros(len(FACES)), np.zeros(len(FACES), dtype=np.int64)
+    face_of = layout.face_of_bin()
+    size = layout.size
     for f in range(F):
         if points[f].shape[0] == 0 or not np.all(np.isfinite(positions[f])):
             continue
-        r = top_residuals(points[f], positions[f], grid, layout.size, layout.margin)
+        fb = face_of[bins[f]]
+        r = np.empty(points[f].shape[0])
+        for k in np.unique(fb):
+            m = fb == k
+            r[m] = face_residuals(points[f][m], positions[f], grid, size, FACES[k])
         sums = np.bincount(bins[f], weights=r, minlength=B)
         n = counts[f]
         mean = np.divide(sums, n, out=np.zeros(B), where=n > 0)
         field[f] = mean
-        ss += float(np.sum((r - mean[bins[f]]) ** 2))
-        dof += int(r.size - np.count_nonzero(n))
+        ss += np.bincount(fb, weights=(r - mean[bins[f]]) ** 2, minlength=len(FACES))
+        dof += np.bincount(fb, minlength=len(FACES)) - np.bincount(face_of[n > 0], minlength=len(FACES))
     return field, ss, dof
 
 

@@ -34,7 +34,7 @@ def _maps(diag: Diagnosis, out: Path) -> None:
             has = r.field != 0
             s += np.where(has, r.field, 0).sum(axis=0)
             c += has.sum(axis=0)
-        return (s / np.maximum(c, 1)).reshape(lay.bins)
+        return (s / np.maximum(c, 1))[: lay.top_bins].reshape(lay.bins)
 
     names = [n for n in diag.extended_fields if n in diag.base_fields]
     base = mean_map(diag.base_fields, names) * 1e3
@@ -79,7 +79,9 @@ def _maps(diag: Diagnosis, out: Path) -> None:
         vals = [next((max(c.delta_chi2, 1.0) for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
         ax.bar(np.arange(len(kinds)) + j * width, vals, width, label=f"round {rnd}")
     n_val = diag.summary.get("validation_bin_frames", 0)
-    ax.axhline(max(diag.config.min_delta_chi2, diag.config.min_gain_per_bin * n_val), color="k", ls="--", lw=1, label="claim threshold")
+    ax.scatter(np.arange(len(kinds)) + 0.4 - width / 2,
+               [max(diag.config.min_delta_chi2, diag.config.gain_per_bin.get(k, diag.config.min_gain_per_bin) * n_val) for k in kinds],
+               marker="_", s=400, color="k", zorder=3, label="claim threshold")
     ax.set_yscale("log")
     ax.set_xticks(np.arange(len(kinds)) + 0.4 - width / 2, kinds, rotation=20, fontsize=8)
     ax.set_ylabel("validation chi2 drop")
@@ -124,6 +126,10 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
     lines += ["", "| where | systematic RMS (mm) | total RMS (mm) | bin-frames |", "|---|---|---|---|"]
     for k, v in diag.summary["by_distance_from_probe"].items():
         lines.append(f"| {k} | {_mm(v['systematic_rms_m'])} | {_mm(v['total_rms_m'])} | {v['bin_frames']} |")
+    if "by_face" in diag.summary:
+        lines += ["", "| face | systematic RMS (mm) | total RMS (mm) | bin-frames |", "|---|---|---|---|"]
+        for k, v in diag.summary["by_face"].items():
+            lines.append(f"| {k} | {_mm(v['systematic_rms_m'])} | {_mm(v['total_rms_m'])} | {v['bin_frames']} |")
     lines += ["", "## Why", ""]
     if diag.causes:
         lines.append("Claimed causes, most important first:")
@@ -157,6 +163,20 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         lines.append(f"Young's modulus with these causes: {E['value']:.4g} Pa (95 % interval {a:.4g}-{b:.4g} Pa).")
     else:
         lines.append(f"Young's modulus: not identifiable. {E.get('reason', '')}")
+    lc = diag.learned_correction
+    if lc:
+        lines += ["", "## What the learned correction learned", "",
+                  f"The network's correction of the top layer ({_mm(lc['correction_rms_m'])} mm RMS over {lc['frames']} frames of "
+                  f"{', '.join(lc['sequences'])}) projected onto each cause's change of the top layer (share: fraction of the "
+                  "correction's sum of squares the scaled cause reproduces; scale 1: the network moves the nodes as the "
+                  "fitted cause does).", "", "| cause | share | scale | cause RMS (mm) |", "|---|---|---|---|"]
+        for c in lc["causes"]:
+            lines.append(f"| {c['kind']} | {100 * c['share']:.0f} % | {c['scale']:.2f} | {_mm(c['cause_rms_m'])} |")
+        if lc["claimed_share"] is not None:
+            lines += ["", f"The claimed causes together account for {100 * lc['claimed_share']:.0f} % of the correction; "
+                          f"{100 * lc['unexplained_share']:.0f} % is something else (model-form error, noise, or a missed effect)."]
+        else:
+            lines += ["", "Nothing was claimed, so none of the correction is attributed to a cause."]
     lines += ["", f"{diag.simulations} simulations, {diag.timings['total']:.0f} s.", ""]
     (out / "report.md").write_text("\n".join(lines))
     return out

@@ -36,7 +36,48 @@ def test_flat_surface_field_is_the_offset_and_the_scatter_is_the_noise():
     field, ss, dof = residual_field(np.repeat(rest[None], 5, axis=0), GRID, lay, pts, bins, counts)
     assert counts.sum() == sum(len(p) for p in pts) > 15000
     assert abs(np.average(field, weights=counts) - offset) < 3 * sigma / np.sqrt(counts.sum())
-    assert np.sqrt(ss / dof) == pytest.approx(sigma, rel=0.03)
+    assert np.sqrt(ss[0] / dof[0]) == pytest.approx(sigma, rel=0.03) and ss[1:].sum() == 0 == dof[1:].sum()
+
+
+def test_side_faces_have_their_own_bins_sign_and_noise():
+    """A box whose +x face sits 0.5 mm out and whose -y face sits 0.3 mm in, each with its
+    own noise: the side bins read +0.5 / -0.3 mm (outward positive), the top 0, and each
+    face's scatter is its own noise."""
+    rng = np.random.default_rng(1)
+    lay = FieldLayout(SIZE, (8, 4), side_rows=3)
+    assert lay.n_bins == 8 * 4 + 2 * 4 * 3 + 2 * 8 * 3
+    c3 = lay.centres3()
+    assert np.array_equal(lay.index(c3), np.arange(lay.n_bins))  # every centre lands in its own bin
+    sx, sy, sz = SIZE
+    n = 3000
+    top = np.column_stack([rng.uniform(0.005, sx - 0.005, n), rng.uniform(0.005, sy - 0.005, n), sz + 2e-4 * rng.standard_normal(n)])
+    px = np.column_stack([sx + 5e-4 + 1e-3 * rng.standard_normal(n), rng.uniform(0.005, sy - 0.005, n), rng.uniform(0.005, sz - 0.005, n)])
+    my = np.column_stack([rng.uniform(0.005, sx - 0.005, n), 3e-4 + 6e-4 * rng.standard_normal(n), rng.uniform(0.005, sz - 0.005, n)])
+    rest = box_mesh(SIZE, GRID).nodes
+    pts, bins, counts = frame_bins([np.concatenate([top, px, my])], lay)
+    field, ss, dof = residual_field(rest[None], GRID, lay, pts, bins, counts)
+    face = lay.face_of_bin()
+    w = counts[0]
+    assert abs(np.average(field[0][face == 0], weights=w[face == 0])) < 2e-5
+    assert np.average(field[0][face == 2], weights=w[face == 2]) == pytest.approx(5e-4, abs=5e-5)
+    assert np.average(field[0][face == 3], weights=w[face == 3]) == pytest.approx(-3e-4, abs=3e-5)
+    assert counts[0][face == 1].sum() == 0 == counts[0][face == 4].sum()
+    sig = np.sqrt(ss / np.maximum(dof, 1))
+    assert sig[0] == pytest.approx(2e-4, rel=0.05) and sig[2] == pytest.approx(1e-3, rel=0.05) and sig[3] == pytest.approx(6e-4, rel=0.05)
+
+
+def test_face_residuals_of_the_top_are_the_top_residuals():
+    from core.diagnosis.fields import face_residuals
+    from core.identification.residuals import top_residuals
+
+    rng = np.random.default_rng(2)
+    rest = box_mesh(SIZE, GRID).nodes
+    moved = rest + 1e-3 * rng.standard_normal(rest.shape)
+    lay = FieldLayout(SIZE, (8, 4))
+    p = np.column_stack([rng.uniform(0.005, SIZE[0] - 0.005, 500), rng.uniform(0.005, SIZE[1] - 0.005, 500),
+                         SIZE[2] + 1e-3 * rng.standard_normal(500)])
+    kept = p[lay.index(p) >= 0]
+    np.testing.assert_allclose(face_residuals(kept, moved, GRID, SIZE, "top"), top_residuals(p, moved, GRID, SIZE))
 
 
 def test_phases_of_a_scripted_poke():
