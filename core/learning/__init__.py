@@ -18,8 +18,10 @@ from core.learning.apply import (
     CorrectedSequence,
     correct_offline,
     correction_field,
+    elastic_extension,
     mean_error,
     replay_in_loop,
+    signed_residual,
 )
 from core.learning.checkpoint import CHECKPOINT_FORMAT, Checkpoint, load_checkpoint, save_checkpoint
 from core.learning.config import MODEL_KINDS, LearningError, NetworkConfig, TrainConfig
@@ -35,6 +37,8 @@ __all__ = [
     "correction_field",
     "mean_error",
     "replay_in_loop",
+    "signed_residual",
+    "elastic_extension",
     "IN_LOOP_MODES",
     "CHECKPOINT_FORMAT",
     "Checkpoint",

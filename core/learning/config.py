@@ -95,9 +95,12 @@ class TrainConfig:
     """torch.use_deterministic_algorithms(True) while training (CPU kernels are)."""
     supersample: int = 3
     """Mesh super-sampling of the Chamfer loss (paper: 3, linear interpolation)."""
+    frame_stride: int = 1
+    """Train on every ``frame_stride``-th frame of each train sequence (1: all, the
+    paper's); validation always uses every frame. For cheaper runs at paper size."""
 
     def __post_init__(self):
-        for name in ("max_epochs", "patience", "batch_size", "max_points", "supersample"):
+        for name in ("max_epochs", "patience", "batch_size", "max_points", "supersample", "frame_stride"):
             if int(getattr(self, name)) < 1:
                 raise LearningError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not (float(self.learning_rate) > 0):

@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import time
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -201,6 +201,10 @@ def train_correction(
         raise LearningError(f"all sequences must share one node grid, got {sorted(grids)}")
     grid = grids.pop()
     train = [s for s in frames if s.role == "train"]
+    if cfg.frame_stride > 1:
+        k = int(cfg.frame_stride)
+        train = [replace(s, times=s.times[::k], positions=s.positions[::k], poses=s.poses[::k], clouds=s.clouds[::k])
+                 for s in train]
     val = [s for s in frames if s.role == "validation"]
     if not train:
         raise LearningError("no 'train' sequence to learn from (roles come from session.json)")

@@ -23,6 +23,10 @@ def test_train_writes_results_checkpoint_and_trajectories(gravity_session, tmp_p
     assert te["no_network"] > 3e-3 and te["corrected"] > 0
     assert data["improvement"] == pytest.approx(1 - te["corrected"] / te["no_network"])
     assert data["youngs_modulus"] == WRONG_E and data["model"] == "2d"
+    # signed column: at the too soft E the mesh sags below the measured top (positive residual)
+    assert data["test_signed_residual"]["no_network"] > 1e-3
+    assert set(data["sequences"]["seq01"]["signed_residual"]) == {"no_network", "corrected", "corrected_offline"}
+    assert 0 <= data["max_unobserved_offset"] < 1e-2
     assert len(data["losses"]) == 2 and all(r["validation_loss"] > 0 for r in data["losses"])
     assert data["timings"]["per_epoch"] > 0
     ck = load_checkpoint(out / "checkpoint.pt")
@@ -43,10 +47,13 @@ def test_evaluate_writes_table3(gravity_session, tmp_path):
     rows = [r for r in data["rows"] if r["sequence"] == "seq01"]
     assert [r["label"] for r in rows] == ["identified", "too stiff", "10 Pa"]
     # gravity in the model: 10 Pa collapses, which the table reports as N/A, not as a crash
-    assert rows[2]["no_network"] is None
+    assert rows[2]["no_network"] is None and rows[2]["no_network_signed"] is None
     assert rows[0]["no_network"] < 2e-3  # the right E with gravity is near the noise floor
+    # signed: the too-stiff E sags less than the truth, so its mesh sits above the points
+    assert rows[1]["no_network_signed"] < rows[0]["no_network_signed"]
+    assert rows[0]["2d_signed"] is not None and rows[0]["2d_offline_signed"] is not None
     md = (out / "evaluation.md").read_text()
-    assert "| E | sequence | no network | 2D | improvement | 3D | improvement |" in md
+    assert "| E | sequence | no network | 2D | improvement | 3D | improvement | signed: no network | 2D | 3D |" in md
     assert "N/A" in md
 
 
