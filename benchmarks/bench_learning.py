@@ -12,8 +12,13 @@ Prints its measurements; asserts nothing.
 3. Table 3: ``evaluate`` on a generated session (identified E, a too-stiff E, 10 Pa;
    2D and 3D networks).
 
-    .venv/bin/python -m benchmarks.bench_learning [--steps 20] [--table3 demo|paper|none]
-        [--widths 64 128 256] [--effects '[{"kind": "gravity"}]'] [--identified E]
+    .venv/bin/python -m benchmarks.bench_learning [--steps 20] [--no-speed] [--table3 demo|paper|none]
+        [--session DIR] [--models 2d 3d] [--table3-widths 64 128 256] [--table3-epochs 20]
+        [--table3-3d-widths W W W] [--table3-3d-epochs N] [--table3-3d-stride K]
+        [--effects '[{"kind": "gravity"}]'] [--replay-effects '[]'] [--identified E]
+    .venv/bin/python -m benchmarks.bench_learning --compare A/evaluation.json B/evaluation.json
+
+4. The paper's Table 3 side by side with ours (``paper_comparison.md``).
 """
 
 from __future__ import annotations
@@ -115,46 +120,145 @@ def bench_inference(widths, threads: int, frames: int = 512) -> dict:
     return out
 
 
-def bench_table3(preset: str, out: Path, widths, effects, identified, epochs: int, threads: int, seed: int) -> dict:
-    """Generate (once) a session of ``preset`` and run the Table 3 evaluation on it."""
+PAPER_TABLE3 = {
+    # Wu et al. 2020, Table 3 (mm; improvement of the corrected over the uncorrected error);
+    # E 5e3 Pa was their identified value, 1e4 too stiff, 1e1 the 10 Pa row
+    "identified": {"E": 5e3, "rows": [("Sequence 1", 5.4627, 4.3025, 0.212, 4.3234, 0.209),
+                                      ("Sequence 2", 5.1170, 4.3450, 0.151, 4.6269, 0.096)]},
+    "too stiff": {"E": 1e4, "rows": [("Sequence 1", 5.2333, 4.2323, 0.191, 4.6446, 0.112),
+                                     ("Sequence 2", 5.2734, 4.3746, 0.184, 4.9828, 0.055)]},
+    "10 Pa": {"E": 1e1, "rows": [("Sequence 1", 8.2322, 5.6235, 0.317, 5.9614, 0.276),
+                                 ("Sequence 2", 9.2899, 6.4518, 0.306, 6.7030, 0.278)]},
+}
+"""The paper's Table 3, per E label of :func:`core.learning.evaluate_networks`."""
+
+
+def paper_side_by_side(evaluations: list[dict]) -> str:
+    """A Markdown table of our Table 3 next to the paper's.
+
+    Args:
+        evaluations: ``evaluation.json`` contents; rows of several files (e.g. a 2D and a
+            3D run on the same session) are merged by (E label, sequence).
+
+    Returns:
+        Markdown: per E label and test sequence (ours in session order against the
+        paper's Sequence 1, 2; "all test" against the mean of the paper's two), the
+        uncorrected error, the improvements of each network in the loop and offline,
+        the paper's improvements, and the signed residuals (mm).
+    """
+    merged: dict[tuple[str, str], dict] = {}
+    order: list[tuple[str, str]] = []
+    for ev in evaluations:
+        for r in ev["rows"]:
+            key = (r["label"], r["sequence"])
+            if key not in merged:
+                merged[key] = {}
+                order.append(key)
+            merged[key].update({k: v for k, v in r.items() if v is not None or k not in merged[key]})
+
+    def mm(v, signed=False):
+        return "N/A" if v is None else (f"{v * 1e3:+.3f}" if signed else f"{v * 1e3:.3f}")
+
+    def pct(v):
+        return "N/A" if v is None else f"{v * 100:.1f}%"
+
+    lines = ["| E ours (paper) | sequence (paper's) | no network mm (paper) | 2D in-loop | 2D offline | paper 2D "
+             "| 3D in-loop | 3D offline | paper 3D | signed mm: none / 2D in-loop / 2D off. / 3D in-loop / 3D off. |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    seen: dict[str, int] = {}
+    for label, seq in order:
+        r = merged[(label, seq)]
+        paper = PAPER_TABLE3.get(label)
+        if seq == "all test":
+            pname = "mean of 2"
+            prow = None if paper is None else tuple(
+                ["mean"] + [sum(x[i] for x in paper["rows"]) / len(paper["rows"]) for i in range(1, 6)])
+        else:
+            i = seen.get(label, 0)
+            seen[label] = i + 1
+            prow = paper["rows"][i] if paper and i < len(paper["rows"]) else None
+            pname = prow[0] if prow else "-"
+        pe = f" ({paper['E']:.0e} Pa)" if paper else ""
+        signed = " / ".join(mm(r.get(k), True) for k in ("no_network_signed", "2d_signed", "2d_offline_signed",
+                                                           "3d_signed", "3d_offline_signed"))
+        lines.append(
+            f"| {r['youngs_modulus']:.4g} Pa{pe} | {seq} ({pname}) | {mm(r.get('no_network'))} ({prow[1]:.3f}) "
+            if prow else f"| {r['youngs_modulus']:.4g} Pa{pe} | {seq} ({pname}) | {mm(r.get('no_network'))} (-) ")
+        lines[-1] += (f"| {pct(r.get('2d_improvement'))} | {pct(r.get('2d_offline_improvement'))} "
+                      f"| {pct(prow[3]) if prow else '-'} | {pct(r.get('3d_improvement'))} "
+                      f"| {pct(r.get('3d_offline_improvement'))} | {pct(prow[5]) if prow else '-'} | {signed} |")
+    return "\n".join(lines) + "\n"
+
+
+def bench_table3(preset: str, out: Path, args) -> dict:
+    """Generate (once) a session of ``preset`` and run the Table 3 evaluation on it.
+
+    The replay model is the base model (``--replay-effects``, default none), so a truth
+    effect such as gravity is what the networks have to learn. The 2D and 3D networks
+    may use different widths, epoch limits and train-frame strides (recorded per run in
+    ``evaluation.json``)."""
     from core.identification import Trial, fit_youngs_modulus
     from core.lab import generate_session
     from core.learning import NetworkConfig, TrainConfig, evaluate_networks, write_evaluation
+    from core.simulation import effect_from_dict
     from core.simulation.replay import ReplayConfig, prepare_session
 
-    session = out / f"{preset}-session"
+    session = Path(args.session) if args.session else out / f"{preset}-session"
     t0 = time.perf_counter()
     if not (session / "session.json").exists():
-        generate_session(session, preset=preset, seed=seed, effects=effects, overwrite=True)
+        generate_session(session, preset=preset, seed=args.seed, effects=json.loads(args.effects), overwrite=True)
     t_gen = time.perf_counter() - t0
+    effect_dicts = tuple(json.loads(args.replay_effects))
+    replay_effects = tuple(effect_from_dict(d) for d in effect_dicts)
+    base = ReplayConfig(effects=replay_effects)
     t0 = time.perf_counter()
     prepared = prepare_session(session, ReplayConfig())
     t_prep = time.perf_counter() - t0
+    print(f"  session {session}: {t_gen:.0f} s to generate, {t_prep:.0f} s to calibrate and clean "
+          f"({sum(s.frame_times.size for s in prepared.sequences.values())} frames)", flush=True)
     t0 = time.perf_counter()
-    if identified is None:
-        fit = fit_youngs_modulus(prepared, base=Trial(sequence="", youngs_modulus=1.0), refine_mesh=False)
+    if args.identified is None:
+        fit = fit_youngs_modulus(prepared, base=Trial(sequence="", youngs_modulus=1.0, effects=effect_dicts),
+                                 refine_mesh=False)
         E = float(fit.coarse_value)
         ident = {"method": "fit_youngs_modulus, replay grid", "youngs_modulus": E, "identifiable": fit.identifiable,
-                 "reason": fit.reason}
+                 "reason": fit.reason, "seconds": time.perf_counter() - t0}
     else:
-        E = float(identified)
+        E = float(args.identified)
         ident = {"method": "given", "youngs_modulus": E}
-    t_fit = time.perf_counter() - t0
-    print(f"  session {session} ({t_gen:.0f} s to generate, {t_prep:.0f} s to prepare); identified E = {E:.4g} Pa "
-          f"({t_fit:.0f} s)")
+    print(f"  identified E = {E:.4g} Pa ({time.perf_counter() - t0:.0f} s): {ident.get('reason', 'given')}", flush=True)
     values = [("identified", E), ("too stiff", 2.0 * E), ("10 Pa", 10.0)]
+    train = TrainConfig(max_epochs=args.table3_epochs, patience=args.patience, threads=args.threads, seed=0)
+    per_kind = {"3d": (NetworkConfig(kind="3d", widths=tuple(args.table3_3d_widths or args.table3_widths)),
+                       TrainConfig(max_epochs=args.table3_3d_epochs or args.table3_epochs, patience=args.patience,
+                                   threads=args.threads, seed=0, frame_stride=args.table3_3d_stride))}
+    for kind in args.models:
+        nc, tc = per_kind.get(kind, (NetworkConfig(kind=kind, widths=tuple(args.table3_widths)), train))
+        print(f"  {kind.upper()}: widths {nc.widths}, at most {tc.max_epochs} epochs (patience {tc.patience}), "
+              f"train frame stride {tc.frame_stride}", flush=True)
+
+    def progress(f, msg, _last=[-1.0]):
+        if f - _last[0] >= 0.01 or "epoch" in msg and "batch" not in msg:
+            _last[0] = f
+            print(f"    {100 * f:5.1f} % {msg}", flush=True)
+
     result = evaluate_networks(
-        prepared, values, ReplayConfig(), network_config=NetworkConfig(widths=tuple(widths)),
-        train_config=TrainConfig(max_epochs=epochs, patience=3, threads=threads, seed=0), identification=ident,
+        prepared, values, base, kinds=tuple(args.models), network_config=NetworkConfig(widths=tuple(args.table3_widths)),
+        train_config=train, identification=ident, per_kind=per_kind, callback=progress,
     )
-    write_evaluation(result, out / f"table3-{preset}")
+    dest = out / (f"table3-{preset}" + ("" if tuple(args.models) == ("2d", "3d") else "-" + "-".join(args.models)))
+    write_evaluation(result, dest)
     print(result.to_markdown())
     for (label, kind), rep in result.reports.items():
         tr = rep.training
         print(f"  {label} {kind}: {len(tr.history)} epochs (best {tr.best_epoch}), {tr.timings['per_epoch']:.1f} s per epoch "
-              f"on {tr.n_frames['train']} frames")
-    return {"session": str(session), "generate_seconds": t_gen, "identification": ident,
-            "evaluation": str(out / f"table3-{preset}"), "total_seconds": result.timings["total"]}
+              f"on {tr.n_frames['train']} frames; in the loop the unset nodes stayed within "
+              f"{rep.to_json()['max_unobserved_offset'] * 1e3:.2f} mm of the plain replay")
+    side = paper_side_by_side([result.to_json()])
+    (dest / "paper_comparison.md").write_text(side)
+    print("against the paper (Wu et al. 2020, Table 3):\n" + side)
+    return {"session": str(session), "generate_seconds": t_gen, "prepare_seconds": t_prep, "identification": ident,
+            "evaluation": str(dest), "total_seconds": result.timings["total"]}
 
 
 def main(argv=None) -> int:
@@ -163,27 +267,41 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=16)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--widths", type=int, nargs=3, default=(64, 128, 256), help="widths of the timing runs (paper's)")
+    ap.add_argument("--speed", action=argparse.BooleanOptionalAction, default=True,
+                    help="run the training and inference timings (default yes)")
     ap.add_argument("--table3", choices=("demo", "paper", "small", "none"), default="demo",
                     help="preset of the Table 3 session (paper: about an hour to generate; default demo)")
+    ap.add_argument("--session", default=None, help="use this session folder instead of generating one")
+    ap.add_argument("--models", nargs="+", choices=("2d", "3d"), default=["2d", "3d"])
     ap.add_argument("--table3-widths", type=int, nargs=3, default=(64, 128, 256))
     ap.add_argument("--table3-epochs", type=int, default=20)
+    ap.add_argument("--table3-3d-widths", type=int, nargs=3, default=None, help="3D widths (default: --table3-widths)")
+    ap.add_argument("--table3-3d-epochs", type=int, default=None, help="3D epoch limit (default: --table3-epochs)")
+    ap.add_argument("--table3-3d-stride", type=int, default=1, help="3D trains on every k-th train frame (default 1)")
+    ap.add_argument("--patience", type=int, default=3)
     ap.add_argument("--effects", default='[{"kind": "gravity"}]',
                     help="truth effects of the generated session (JSON; default gravity, which the base model lacks)")
+    ap.add_argument("--replay-effects", default="[]", help="effects of the replay model (JSON; default none)")
     ap.add_argument("--identified", type=float, default=None, help="skip the fit and use this E, Pa")
+    ap.add_argument("--compare", nargs="+", default=None, metavar="EVALUATION_JSON",
+                    help="only print the side-by-side table of these evaluation.json files (e.g. a 2D and a 3D run)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="data/bench-learning")
     args = ap.parse_args(argv)
+    if args.compare:
+        print(paper_side_by_side([json.loads(Path(f).read_text()) for f in args.compare]))
+        return 0
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {}
-    print(f"training speed, paper size (13x5x5 grid, widths {tuple(args.widths)}, {args.threads} threads):")
-    results["training"] = bench_training(args.widths, args.steps, args.batch, args.threads)
-    print("inference speed:")
-    results["inference"] = bench_inference(args.widths, args.threads)
+    if args.speed:
+        print(f"training speed, paper size (13x5x5 grid, widths {tuple(args.widths)}, {args.threads} threads):")
+        results["training"] = bench_training(args.widths, args.steps, args.batch, args.threads)
+        print("inference speed:")
+        results["inference"] = bench_inference(args.widths, args.threads)
     if args.table3 != "none":
-        print(f"Table 3 on a '{args.table3}' session (widths {tuple(args.table3_widths)}):")
-        results["table3"] = bench_table3(args.table3, out, args.table3_widths, json.loads(args.effects), args.identified,
-                                         args.table3_epochs, args.threads, args.seed)
+        print(f"Table 3 on a '{args.table3}' session:")
+        results["table3"] = bench_table3(args.table3, out, args)
     (out / "bench_learning.json").write_text(json.dumps(results, indent=2))
     print(f"wrote {out}/bench_learning.json")
     return 0
