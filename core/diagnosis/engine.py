@@ -76,7 +76,10 @@ class DiagnosisConfig:
         side_rows: bins along z on each side face (0: the top face only). Side faces
             carry what the top cannot: side pokes, where a probe's radius and lateral
             offsets show directly. Each face's noise is estimated on its own, and its
-            bins weighted by it.
+            bins weighted by it. Off by default: with 4 rows, a hidden gravity of 9.81
+            was fitted at 7.63 m/s^2 (top only: 10.57) and a foundation and friction were
+            claimed beside it; the 5-node-high coarse grid does not resolve the sides'
+            bulge, and the multi-fidelity shift corrects the base field, not signatures.
         probe_exclusion: bins whose centre lies within this horizontal distance (m) of
             the measured probe centre are left out of fits and selection (0: none). The
             dent is where the coarse grid's discretisation error lives (a 5 mm sphere on
@@ -127,7 +130,7 @@ class DiagnosisConfig:
     law: str = "corotational"
     fine_grid: tuple[int, int, int] | None = (25, 9, 9)
     layout_bins: tuple[int, int] = (16, 8)
-    side_rows: int = 4
+    side_rows: int = 0
     probe_exclusion: float = 0.0
     min_delta_chi2: float = 25.0
     min_gain_per_bin: float = 0.02
