@@ -16,6 +16,7 @@ Prints its measurements; asserts nothing.
         [--session DIR] [--models 2d 3d] [--table3-widths 64 128 256] [--table3-epochs 20]
         [--table3-3d-widths W W W] [--table3-3d-epochs N] [--table3-3d-stride K]
         [--effects '[{"kind": "gravity"}]'] [--replay-effects '[]'] [--identified E]
+        [--prepared-cache FILE]
     .venv/bin/python -m benchmarks.bench_learning --compare A/evaluation.json B/evaluation.json
 
 4. The paper's Table 3 side by side with ours (``paper_comparison.md``).
@@ -25,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import pickle
 import time
 from pathlib import Path
 
@@ -212,7 +214,17 @@ def bench_table3(preset: str, out: Path, args) -> dict:
     replay_effects = tuple(effect_from_dict(d) for d in effect_dicts)
     base = ReplayConfig(effects=replay_effects)
     t0 = time.perf_counter()
-    prepared = prepare_session(session, ReplayConfig())
+    cache = Path(args.prepared_cache) if args.prepared_cache else None
+    if cache is not None and cache.exists():  # a paper-size session takes long to clean: reuse it across runs
+        with cache.open("rb") as fh:
+            prepared = pickle.load(fh)
+        if Path(prepared.path).resolve() != session.resolve():
+            raise SystemExit(f"{cache} holds {prepared.path}, not {session}")
+    else:
+        prepared = prepare_session(session, ReplayConfig())
+        if cache is not None:
+            with cache.open("wb") as fh:
+                pickle.dump(prepared, fh, protocol=pickle.HIGHEST_PROTOCOL)
     t_prep = time.perf_counter() - t0
     print(f"  session {session}: {t_gen:.0f} s to generate, {t_prep:.0f} s to calibrate and clean "
           f"({sum(s.frame_times.size for s in prepared.sequences.values())} frames)", flush=True)
@@ -283,6 +295,8 @@ def main(argv=None) -> int:
                     help="truth effects of the generated session (JSON; default gravity, which the base model lacks)")
     ap.add_argument("--replay-effects", default="[]", help="effects of the replay model (JSON; default none)")
     ap.add_argument("--identified", type=float, default=None, help="skip the fit and use this E, Pa")
+    ap.add_argument("--prepared-cache", default=None,
+                    help="pickle of the calibrated, cleaned session: written on the first run, read on later ones")
     ap.add_argument("--compare", nargs="+", default=None, metavar="EVALUATION_JSON",
                     help="only print the side-by-side table of these evaluation.json files (e.g. a 2D and a 3D run)")
     ap.add_argument("--seed", type=int, default=0)
