@@ -841,7 +841,7 @@ def _read_frames(path: Path) -> Frames:
     uniq, first, counts = np.unique(idx, return_index=True, return_counts=True)
     if (counts > 1).any():
         dup = int(uniq[counts > 1][0])
-        rows = [i + 1 for i in np.flatnonzero(idx == dup)]
+        rows = [int(i) + 1 for i in np.flatnonzero(idx == dup)]
         raise ColumnError(path, f"column 'frame' repeats frame number {dup} at rows {rows}")
     return Frames(index=idx, t=t, files=tuple(files))
 

@@ -281,8 +281,8 @@ def duplicates(draw):
 
     if column == "t":
         return mutate, Broken(rel, E.TimestampError, rf"not strictly increasing at row {row + 1} .*a duplicate", meta_and_csv)
-    # (core.io prints the rows as numpy scalars, "[np.int64(3), ...]": only the frame number is checked)
-    return mutate, Broken(rel, E.ColumnError, rf"column 'frame' repeats frame number {row - 1} at rows ", meta_and_csv)
+    return mutate, Broken(rel, E.ColumnError, rf"column 'frame' repeats frame number {row - 1} at rows \[{row}, {row + 1}\]$",
+                          meta_and_csv)
 
 
 @st.composite
