@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
@@ -114,3 +115,38 @@ def install_error_handlers(app: FastAPI) -> None:
         if exc.status_code == 413 and MAX_BODY_SIZE_SCOPE_KEY in request.scope:
             detail = f"request body larger than {request.scope[MAX_BODY_SIZE_SCOPE_KEY]} bytes"
         return JSONResponse(status_code=exc.status_code, content={"detail": detail}, headers=exc.headers)
+
+
+class JSONTooLarge:
+    """ASGI wrapper: Starlette's body-limit middleware answers a body whose announced
+    Content-Length is over the limit itself, before any handler, in plain text
+    ("Content Too Large"). This rewrites that one response into the documented error
+    body, ``{"detail": "request body larger than N bytes"}`` (``api.schemas.ErrorOut``).
+    Every other response passes through untouched."""
+
+    def __init__(self, app):
+        self.app = app
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        rewriting = False
+
+        async def send_json(message):
+            nonlocal rewriting
+            if message["type"] == "http.response.start" and message["status"] == 413:
+                ctype = dict(message.get("headers") or []).get(b"content-type", b"")
+                if ctype.startswith(b"text/plain"):
+                    rewriting = True
+                    return
+            if rewriting and message["type"] == "http.response.body":
+                limit = scope.get(MAX_BODY_SIZE_SCOPE_KEY)
+                detail = f"request body larger than {limit} bytes" if limit else "request body too large"
+                body = json.dumps({"detail": detail}).encode()
+                await send({"type": "http.response.start", "status": 413,
+                            "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+                await send({"type": "http.response.body", "body": body})
+                return
+            await send(message)
+
+        await self.app(scope, receive, send_json)

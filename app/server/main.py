@@ -13,7 +13,7 @@ from sqlalchemy import select
 
 from app.server import db as dbm
 from app.server.api.routes import job_types, jobs, sessions, system, viewer
-from app.server.errors import install_error_handlers
+from app.server.errors import JSONTooLarge, install_error_handlers
 from app.server.jobs.registry import Registry
 from app.server.jobs.runner import JobRunner
 from app.server.settings import Settings
@@ -28,6 +28,13 @@ UPLOAD_OVERHEAD = 64 * 1024
 """Bytes of multipart framing and form fields allowed on top of ``max_upload_bytes``."""
 
 VIEWER_TYPES = ("replay", "train", "diagnose")
+
+
+class _Workbench(FastAPI):
+    """FastAPI whose outermost layer turns Starlette's plain-text 413 into JSON."""
+
+    def build_middleware_stack(self):
+        return JSONTooLarge(super().build_middleware_stack())
 """Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
 
 
@@ -126,7 +133,7 @@ def create_app(settings: Settings | None = None, registry: Registry | None = Non
             runner.close()
             engine.dispose()
 
-    app = FastAPI(
+    app = _Workbench(
         title="Tissue Twin workbench",
         description="Sessions, jobs (generate, replay, sweep, fit) on Dask, artifacts, and the 3D viewer.",
         version="0.1.0",

@@ -34,6 +34,7 @@ import httpx
 import pytest
 
 from tests.app._server import ROOT, _free_port, listening_addresses
+from app.server.main import UPLOAD_OVERHEAD
 
 FINAL = {"done", "failed", "cancelled", "interrupted"}
 
@@ -232,9 +233,10 @@ def test_body_size_limits_are_enforced_while_the_body_streams_in(live):
             "Content-Type: application/zip\r\n\r\n").encode()
 
     # announced too large: refused before a byte of the body is sent (Starlette answers
-    # this one itself, in plain text)
+    # this one before any handler; the app rewrites it into the documented JSON body)
     status, body = raw_request(live.server.port, f"{head}\r\nContent-Length: {total}", b"")
-    assert status == 413 and body == b"Content Too Large"
+    assert status == 413
+    assert json.loads(body) == {"detail": f"request body larger than {live.max_upload_bytes + UPLOAD_OVERHEAD} bytes"}
 
     # no length announced (chunked): cut off once the limit is passed, long before the end
     sent = 0
@@ -258,7 +260,7 @@ def test_body_size_limits_are_enforced_while_the_body_streams_in(live):
     # JSON routes have their own small limit
     r = httpx.post(f"{live.url}/api/sessions", content=json.dumps({"path": "x" * 2_000_000}),
                    headers={"content-type": "application/json"})
-    assert r.status_code == 413
+    assert r.status_code == 413 and "larger than" in r.json()["detail"]
     assert _stored(live) == before
 
 
