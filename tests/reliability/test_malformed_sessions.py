@@ -185,7 +185,12 @@ def non_finite(draw):
 def wrong_units(draw):
     factor = draw(st.sampled_from([1000.0, 100.0]))  # millimetres, centimetres
     what = draw(st.sampled_from(["phantom.size", "probe.radius", "kinematics", "corners", "all clouds",
-                                 "sequence clouds", "phantom.stl"]))
+                                 "sequence clouds", "last cloud", "phantom.stl"]))
+    return units_case(what, factor)
+
+
+def units_case(what: str, factor: float):
+    """(mutate, expected) for ``what`` written in units ``factor`` times too small."""
     mm = r"looks? like millimetres"
     if what == "phantom.size":
         return (lambda root: edit_meta(root, lambda m: m["phantom"].update(size=[v * factor for v in m["phantom"]["size"]])),
@@ -205,6 +210,10 @@ def wrong_units(draw):
 
         what_pos = "probe position" if what == "kinematics" else "corner position"
         return mutate, Broken(rel, E.UnitsError, rf"{what_pos} at row \d+ .* {mm}", meta_and_csv)
+    if what == "last cloud":  # the camera driver switched units mid-recording
+        last = N_FRAMES - 1
+        return (lambda root: scale_clouds(root, [cloud_file(last)], factor),
+                Broken(cloud_file(last), E.UnitsError, rf"median point distance .* {mm}", cloud(last)))
     if what in ("all clouds", "sequence clouds"):
         files = [cloud_file(i) for i in range(N_FRAMES)] + (["calibration/reference.ply"] if what == "all clouds" else [])
         first = "calibration/reference.ply" if what == "all clouds" else cloud_file(0)
@@ -477,6 +486,12 @@ def test_nan_and_infinity(bench, tiny_session, case):
 @given(case=wrong_units())
 def test_wrong_units(bench, tiny_session, case):
     check(bench, tiny_session, *case)
+
+
+@settings(FUZZ, max_examples=1)
+@given(case=st.just(units_case("last cloud", 1000.0)))
+def test_a_units_switch_in_the_last_cloud_is_caught(bench, tiny_session, case):
+    check(bench, tiny_session, *case)  # always drawn here, whatever the fuzzing above draws
 
 
 @FUZZ

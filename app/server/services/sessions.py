@@ -5,7 +5,8 @@ stored: the folder is a real directory inside the allowed roots (``Settings.sess
 after resolving ``..`` and symlinks); no symlink inside it leads out of it; it reads as a
 session with ``core.io.read_session(check_clouds=True)`` (every CSV, and every PLY's
 header and size: a truncated cloud anywhere is refused); the reference cloud and the
-first cloud of each sequence parse and are in metres; ``phantom.stl`` and
+first, middle and last cloud of each sequence parse and are in metres (all of them would
+mean reading every point of a long session); ``phantom.stl`` and
 ``calibration/picked.json`` parse when present; it lists at least one sequence. Errors
 name the file and the problem; a refused folder leaves the database as it was.
 """
@@ -86,7 +87,8 @@ def check_session(folder: Path):
             raise SessionFormatError(folder / "session.json", "lists no sequences; a session needs at least one")
         session.reference_cloud()  # parse, finite points, metres
         for seq in session.sequences.values():
-            seq.cloud(0)
+            for i in sorted({0, len(seq) // 2, len(seq) - 1}):  # first, middle, last: a units switch mid-recording
+                seq.cloud(i)
         session.phantom_mesh()
         read_picked(folder)
     except PermissionError as exc:
