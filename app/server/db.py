@@ -13,7 +13,7 @@ import json
 import math
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, create_engine, event, text, update
+from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, create_engine, event, select, text, update
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker, validates
 from sqlalchemy.types import TypeDecorator
@@ -21,7 +21,7 @@ from sqlalchemy.types import TypeDecorator
 from app.server.errors import Invalid
 
 __all__ = ["Base", "SessionRecord", "JobRecord", "ACTIVE", "FINAL", "UTCDateTime", "json_dumps", "normalize_url",
-           "MAX_ID", "valid_id", "make_engine", "make_sessionmaker", "mark_interrupted", "utcnow"]
+           "MAX_ID", "valid_id", "make_engine", "make_sessionmaker", "mark_interrupted", "active_tokens", "utcnow"]
 
 #: Job statuses. ``interrupted``: the server stopped while the job was queued or running.
 QUEUED, RUNNING, DONE, FAILED, CANCELLED, INTERRUPTED = "queued", "running", "done", "failed", "cancelled", "interrupted"
@@ -133,6 +133,9 @@ class JobRecord(Base):
     traceback: Mapped[str | None] = mapped_column(Text, nullable=True)
     artifact_dir: Mapped[str] = mapped_column(String(2000), default="")
     cancel_requested: Mapped[bool] = mapped_column(default=False)
+    dask_token: Mapped[str | None] = mapped_column(String(64), nullable=True)
+    """Name prefix of the job's Dask task and events (``<token>-job``, ``<token>-cancel``):
+    a restarted server cancels the task of a job its predecessor left running."""
     created_at: Mapped[dt.datetime] = mapped_column(UTCDateTime, default=utcnow)
     started_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
     finished_at: Mapped[dt.datetime | None] = mapped_column(UTCDateTime, nullable=True)
@@ -182,7 +185,31 @@ def make_sessionmaker(engine: Engine) -> sessionmaker:
         if conn.dialect.name == "postgresql":
             conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": _SCHEMA_LOCK})
         Base.metadata.create_all(conn)
+        _add_missing_columns(conn)
     return sessionmaker(engine, expire_on_commit=False)
+
+
+_ADDED_COLUMNS = {"jobs": {"dask_token": "VARCHAR(64)"}}
+"""Nullable columns added after the first release: ``create_all`` does not add a column
+to an existing table, so a database made by an earlier version gets them here."""
+
+
+def _add_missing_columns(conn) -> None:
+    from sqlalchemy import inspect
+
+    insp = inspect(conn)
+    for table, columns in _ADDED_COLUMNS.items():
+        have = {c["name"] for c in insp.get_columns(table)}
+        for name, sql_type in columns.items():
+            if name not in have:
+                conn.execute(text(f"ALTER TABLE {table} ADD COLUMN {name} {sql_type}"))
+
+
+def active_tokens(factory: sessionmaker) -> list[str]:
+    """Dask tokens of the jobs a previous server left queued or running (to cancel them)."""
+    with factory() as db:
+        rows = db.execute(select(JobRecord.dask_token).where(JobRecord.status.in_(ACTIVE))).scalars()
+        return [t for t in rows if t]
 
 
 def mark_interrupted(factory: sessionmaker) -> int:

@@ -114,11 +114,14 @@ def create_app(settings: Settings | None = None, registry: Registry | None = Non
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
         engine = dbm.make_engine(settings.url)
         factory = dbm.make_sessionmaker(engine)
+        orphans = dbm.active_tokens(factory)
         n = dbm.mark_interrupted(factory)
         if n:
             log.warning("%d job(s) of a previous server marked interrupted", n)
         runner = JobRunner(settings, factory, registry)
         runner.start()
+        if runner.cancel_orphans(orphans):
+            log.warning("cancelled %d task(s) a previous server left on the cluster", len(orphans))
         app.state.settings, app.state.registry = settings, registry
         app.state.sessionmaker, app.state.runner, app.state.viewer = factory, runner, None
         try:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from sqlalchemy import select
+from sqlalchemy import inspect, select, text
 
 from app.server import db as dbm
 from app.server.errors import Invalid
@@ -183,6 +183,30 @@ def test_both_backends_store_the_same(any_url):
         with factory() as db:
             statuses = dict(db.execute(select(dbm.JobRecord.id, dbm.JobRecord.status)).all())
         assert statuses == {job.id: dbm.DONE, job.id + 1: dbm.INTERRUPTED}
+    finally:
+        engine.dispose()
+
+
+def test_a_database_of_an_earlier_version_gets_the_new_columns(any_url):
+    """``create_all`` does not add columns to existing tables: a database made before
+    ``jobs.dask_token`` existed gets it at start-up, and its rows survive."""
+    engine = dbm.make_engine(any_url)
+    try:
+        factory = dbm.make_sessionmaker(engine)
+        with factory.begin() as db:
+            db.add(dbm.JobRecord(type="replay", params={"grid": [4, 3, 3]}, status=dbm.RUNNING))
+        with engine.begin() as conn:
+            conn.execute(text("ALTER TABLE jobs DROP COLUMN dask_token"))  # the earlier schema
+        assert "dask_token" not in {c["name"] for c in inspect(engine).get_columns("jobs")}
+        factory = dbm.make_sessionmaker(engine)
+        assert "dask_token" in {c["name"] for c in inspect(engine).get_columns("jobs")}
+        with factory.begin() as db:
+            job = db.execute(select(dbm.JobRecord)).scalar_one()
+            assert job.params == {"grid": [4, 3, 3]} and job.dask_token is None
+            job.dask_token = "tt-1-abc"
+        assert dbm.active_tokens(factory) == ["tt-1-abc"]
+        dbm.mark_interrupted(factory)
+        assert dbm.active_tokens(factory) == []
     finally:
         engine.dispose()
 

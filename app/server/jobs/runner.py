@@ -12,7 +12,9 @@
   :class:`WorkerCrashed`, so a crashing job fails alone while trial tasks of other jobs
   that were on the dead worker are retried by Dask as usual.
 * Restart: a stopping server leaves its jobs ``interrupted`` (also done at start-up for
-  jobs a killed server left behind, :func:`app.server.db.mark_interrupted`).
+  jobs a killed server left behind, :func:`app.server.db.mark_interrupted`). On an
+  external cluster, where a killed server's tasks outlive it, the new server cancels
+  them through the tokens stored in their rows (:meth:`JobRunner.cancel_orphans`).
 """
 
 from __future__ import annotations
@@ -156,6 +158,10 @@ class JobRunner:
         job_type = self.registry.get(job.type)
         assert job_type is not None, job.type
         token = f"tt-{job.id}-{uuid.uuid4().hex[:12]}"
+        with self.factory.begin() as db:  # a restarted server finds it there (cancel_orphans)
+            rec = db.get(dbm.JobRecord, job.id)
+            if rec is not None:
+                rec.dask_token = token
         future = self.client.submit(
             execute_job, token, job.id, job_type.run, job_type.params, job.params, job.artifact_dir,
             session_path, picked, self.settings.progress_interval, key=f"{token}-job", pure=False, retries=0,
@@ -181,6 +187,23 @@ class JobRunner:
             started = job is not None and job.status == dbm.RUNNING
         if not started and future is not None:
             future.cancel()
+
+    def cancel_orphans(self, tokens: list[str]) -> int:
+        """Stop the tasks a previous server of this database left on an external cluster.
+
+        Its jobs' cancel events lived in the dead server's memory only as references:
+        the events themselves are on the scheduler, so setting them (and cancelling the
+        task by its key) ends a running job at its next progress report and drops a
+        queued one. A local cluster died with the server: nothing to do. Returns the
+        number of tokens signalled."""
+        if not tokens or self.cluster is not None or self.client is None:
+            return 0
+        from distributed import Event, Future
+
+        for token in tokens:
+            Event(f"{token}-cancel", client=self.client).set()
+            Future(f"{token}-job", client=self.client).cancel()
+        return len(tokens)
 
     def active(self) -> list[int]:
         with self._lock:
