@@ -13,7 +13,8 @@ import json
 import math
 from typing import Any
 
-from sqlalchemy import JSON, DateTime, Float, ForeignKey, Integer, String, Text, create_engine, event, select, text, update
+from sqlalchemy import (JSON, DateTime, Float, ForeignKey, Integer, String, Text, create_engine, event, inspect, select, text,
+                        update)
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker, validates
 from sqlalchemy.types import TypeDecorator
@@ -195,8 +196,6 @@ to an existing table, so a database made by an earlier version gets them here.""
 
 
 def _add_missing_columns(conn) -> None:
-    from sqlalchemy import inspect
-
     insp = inspect(conn)
     for table, columns in _ADDED_COLUMNS.items():
         have = {c["name"] for c in insp.get_columns(table)}

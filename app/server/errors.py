@@ -85,6 +85,11 @@ def _errors(exc: ValidationError | RequestValidationError) -> list:
     return _json_safe([{k: v for k, v in e.items() if k not in ("ctx", "url")} for e in exc.errors()])
 
 
+def _too_large(limit: int | None) -> str:
+    """The 413 error detail for a body over ``limit`` bytes."""
+    return f"request body larger than {limit} bytes" if limit else "request body too large"
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Map :class:`AppError` to its status, every ``core`` :class:`TissueTwinError`
     (bad session, failed registration, bad model parameters) and pydantic
@@ -113,7 +118,7 @@ def install_error_handlers(app: FastAPI) -> None:
     async def _http(request: Request, exc: StarletteHTTPException):
         detail = exc.detail
         if exc.status_code == 413 and MAX_BODY_SIZE_SCOPE_KEY in request.scope:
-            detail = f"request body larger than {request.scope[MAX_BODY_SIZE_SCOPE_KEY]} bytes"
+            detail = _too_large(request.scope[MAX_BODY_SIZE_SCOPE_KEY])
         return JSONResponse(status_code=exc.status_code, content={"detail": detail}, headers=exc.headers)
 
 
@@ -140,9 +145,7 @@ class JSONTooLarge:
                     rewriting = True
                     return
             if rewriting and message["type"] == "http.response.body":
-                limit = scope.get(MAX_BODY_SIZE_SCOPE_KEY)
-                detail = f"request body larger than {limit} bytes" if limit else "request body too large"
-                body = json.dumps({"detail": detail}).encode()
+                body = json.dumps({"detail": _too_large(scope.get(MAX_BODY_SIZE_SCOPE_KEY))}).encode()
                 await send({"type": "http.response.start", "status": 413,
                             "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
                 await send({"type": "http.response.body", "body": body})

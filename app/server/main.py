@@ -28,6 +28,7 @@ UPLOAD_OVERHEAD = 64 * 1024
 """Bytes of multipart framing and form fields allowed on top of ``max_upload_bytes``."""
 
 VIEWER_TYPES = ("replay", "train", "diagnose")
+"""Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
 
 
 class _Workbench(FastAPI):
@@ -35,7 +36,6 @@ class _Workbench(FastAPI):
 
     def build_middleware_stack(self):
         return JSONTooLarge(super().build_middleware_stack())
-"""Job types whose finished runs the viewer shows (their result says ``"viewer": true``)."""
 
 
 def viewer_folder(job) -> Path:

@@ -452,6 +452,13 @@ def _fit_candidate(eng: _Engine, cand: Candidate, fixed: list[dict], sigma2: flo
     return _Fit(x, se, _rss(r_x), cand.to_effect(x))
 
 
+def _fit_fields(cand: Candidate, fit: _Fit) -> dict:
+    """The :class:`CauseReport` fields that come from a fit of ``cand``."""
+    return {"parameters": cand.to_parameters(fit.x),
+            "fit_variables": {n: (float(v), float(s), u) for n, v, s, u in zip(cand.names, fit.x, fit.se, cand.units)},
+            "identifiable": _identifiable(cand, fit.x, fit.se)}
+
+
 def _identifiable(cand: Candidate, x: np.ndarray, se: np.ndarray) -> dict:
     out = {}
     for name, v, s in zip(cand.names, x, se):
@@ -644,12 +651,8 @@ def diagnose_prepared(
             d, phi, f_k, _ = evid[k]
             conf = _support(cur_f, f_k, val_nf, val_blocks, cfg, _threshold(cfg, k), cfg.n_boot, rng) if k in passing else 0.0
             c = cands[k]
-            round_reports[k] = CauseReport(
-                kind=k, parameters=c.to_parameters(fits[k].x),
-                fit_variables={n: (float(v), float(s), u) for n, v, s, u in zip(c.names, fits[k].x, fits[k].se, c.units)},
-                identifiable=_identifiable(c, fits[k].x, fits[k].se), delta_chi2=float(d), explained=float(phi),
-                confidence=float(conf), round=rnd,
-            )
+            round_reports[k] = CauseReport(kind=k, **_fit_fields(c, fits[k]), delta_chi2=float(d), explained=float(phi),
+                                           confidence=float(conf), round=rnd)
         if not passing:
             reports += list(round_reports.values())
             break
@@ -707,9 +710,7 @@ def diagnose_prepared(
         for i, (c, f, rep) in enumerate(claimed):
             others = [g.effect for j, (_, g, _) in enumerate(claimed) if j != i]
             g = _fit_candidate(eng, replace(c, starts=(f.x,)), others, sigma2)
-            new.append((c, g, replace(rep, parameters=c.to_parameters(g.x),
-                                      fit_variables={n: (float(v), float(s), u) for n, v, s, u in zip(c.names, g.x, g.se, c.units)},
-                                      identifiable=_identifiable(c, g.x, g.se))))
+            new.append((c, g, replace(rep, **_fit_fields(c, g))))
         claimed = new
     # final refit on the fine grid: the coarse signatures of local causes (a dent's
     # shift, a clock offset) are blurred by 6 x 10 mm elements, and the discrepancy
@@ -722,9 +723,7 @@ def diagnose_prepared(
             others = [g.effect for _, g, _ in new] + [g.effect for _, g, _ in claimed[i + 1:]]
             g = _fit_candidate(eng, replace(c, starts=(f.x,)), others, sigma2, fine=True,
                                iterations=cfg.fine_refit_iterations)
-            new.append((c, g, replace(rep, parameters=c.to_parameters(g.x),
-                                      fit_variables={n: (float(v), float(s), u) for n, v, s, u in zip(c.names, g.x, g.se, c.units)},
-                                      identifiable=_identifiable(c, g.x, g.se))))
+            new.append((c, g, replace(rep, **_fit_fields(c, g))))
         claimed = new
     ext_effects = [f.effect for _, f, _ in claimed]
 
