@@ -72,6 +72,10 @@ class ProbingConfig:
     """Angle of the shaft from vertical, degrees (constant per sequence)."""
     start_rest_range: tuple[float, float] = (0.5, 1.0)
     """Time the probe waits at its start position before the first poke, s."""
+    top_region: tuple[float, float, float, float] | None = None
+    """``(x0, y0, x1, y1)``, m: top-face contact points are drawn in this rectangle
+    (intersected with the edge margins): a palpation that searches a suspect region, as
+    a surgeon palpates over a suspected tumour. None: anywhere on the top face."""
 
 
 @dataclass(frozen=True)
@@ -278,8 +282,12 @@ def _allowed_box(face: str, size: np.ndarray, radius: float, cfg: ProbingConfig)
     hi = np.array([ulen - m, vlen - m])
     if face != "+z":
         lo[1] = max(lo[1], cfg.bottom_margin + radius)
+    elif cfg.top_region is not None:
+        x0, y0, x1, y1 = cfg.top_region
+        lo, hi = np.maximum(lo, [x0, y0]), np.minimum(hi, [x1, y1])
     if np.any(hi <= lo):
-        raise ValueError(f"face {face} of a {size.tolist()} m box has no room for pokes with margin {m} m")
+        raise ValueError(f"face {face} of a {size.tolist()} m box has no room for pokes with margin {m} m"
+                         + (f" in top_region {cfg.top_region}" if face == "+z" and cfg.top_region is not None else ""))
     return lo, hi
 
 

@@ -116,3 +116,23 @@ def test_same_rng_seed_same_plan():
 def test_too_short_sequence_is_an_error():
     with pytest.raises(ValueError, match="too short"):
         plan_sequence(np.random.default_rng(0), size=SIZE, radius=0.005, duration=1.0)
+
+
+def test_top_region_keeps_every_top_poke_and_slide_inside_it():
+    region = (0.030, 0.012, 0.042, 0.026)
+    cfg = ProbingConfig(top_region=region, slide_probability=1.0)
+    rng = np.random.default_rng(3)
+    tops = 0
+    for _ in range(10):
+        plan = plan_sequence(rng, size=SIZE, radius=0.005, duration=20.0, config=cfg)
+        for p in plan.pokes:
+            if p.face != "+z":
+                continue
+            tops += 1
+            for q in (p.point, p.slide_to):
+                if q is not None:
+                    assert region[0] - 1e-12 <= q[0] <= region[2] + 1e-12 and region[1] - 1e-12 <= q[1] <= region[3] + 1e-12
+    assert tops >= 10  # the check ran on real pokes
+    with pytest.raises(ValueError, match="top_region"):
+        plan_sequence(rng, size=SIZE, radius=0.005, duration=20.0,
+                      config=ProbingConfig(top_region=(0.0, 0.0, 0.005, 0.005), side_probability=0.0))
