@@ -72,6 +72,30 @@ def test_stiff_inclusion_stiffens_only_the_local_response():
     assert force([inc], far) == pytest.approx(force([], far), rel=0.1)
 
 
+def test_inclusion_stiffness_volume_matches_the_sphere_and_moves_smoothly():
+    """The volume-fraction inclusion: its excess stiffness volume, sum of V_e (scale - 1),
+    is (ratio - 1) 4/3 pi r^3 within 15 % on a fine mesh, and on the coarse 13 x 5 x 5
+    mesh it grows at every 0.1 mm step of the radius from 8 to 10 mm by about the
+    sphere's own growth (a centroid-in-sphere test jumps by whole 84 mm^3 tetrahedra
+    at a few steps and stays flat at the others)."""
+    from core.simulation.model import ModelBuilder
+
+    def excess(grid, radius, centre=(0.034, 0.02, 0.024)):
+        b = ModelBuilder(box_mesh(SIZE, grid), MASS)
+        Inclusion(center=centre, radius=radius, stiffness_ratio=6.0).configure(b)
+        corners = b.mesh.nodes[b.mesh.tets]
+        vol = np.abs(np.einsum("ij,ij->i", corners[:, 1] - corners[:, 0],
+                               np.cross(corners[:, 2] - corners[:, 0], corners[:, 3] - corners[:, 0]))) / 6
+        return float(vol @ (b.element_scale - 1.0))
+
+    sphere = 5.0 * 4.0 / 3.0 * np.pi * 0.009**3
+    assert excess((37, 13, 13), 0.009) == pytest.approx(sphere, rel=0.15)
+    radii = np.arange(0.008, 0.0100001, 0.0001)
+    steps = np.diff([excess((13, 5, 5), r) for r in radii])
+    d_sphere = 5.0 * 4.0 * np.pi * radii[1:] ** 2 * 1e-4
+    assert np.all(steps > 0.2 * d_sphere) and np.all(steps < 5.0 * d_sphere)
+
+
 def test_viscoelastic_dent_recovers_with_the_retardation_time():
     """Standard linear solid: after release, creep back with tau_c = tau (1 + k)."""
     mesh = box_mesh(SIZE, GRID)
