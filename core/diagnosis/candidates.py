@@ -17,7 +17,7 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Candidate", "candidates", "KINDS"]
+__all__ = ["Candidate", "candidates", "top_presses", "KINDS"]
 
 KINDS = (
     "gravity",
@@ -69,8 +69,15 @@ def _a(*v) -> np.ndarray:
     return np.array(v, dtype=np.float64)
 
 
-def candidates(size, probe_radius: float) -> dict[str, Candidate]:
-    """All candidate causes for a phantom of ``size`` (3,) m and a probe of ``probe_radius`` m."""
+def candidates(size, probe_radius: float, presses: np.ndarray | None = None) -> dict[str, Candidate]:
+    """All candidate causes for a phantom of ``size`` (3,) m and a probe of ``probe_radius`` m.
+
+    Args:
+        presses: (K, 2) float64, m, phantom frame: (x, y) where the probe pressed into the
+            top face in the train sequences (:func:`top_presses`). An inclusion changes
+            the data only near where the probe pressed, so its fits start below these
+            points; without any, from a 3 x 2 grid over the top.
+    """
     sx, sy, sz = (float(v) for v in size)
     r0 = float(probe_radius)
     out: dict[str, Candidate] = {}
@@ -91,11 +98,11 @@ def candidates(size, probe_radius: float) -> dict[str, Candidate]:
         x[:3] = np.clip(x[:3], x[3], size3 - x[3])
         return x
 
-    inc_starts = tuple(
-        _a(cx, cy, sz - 0.012, 0.008, math.log10(4.0))
-        for cx in (sx / 6, sx / 2, 5 * sx / 6)
-        for cy in (sy / 4, 3 * sy / 4)
-    )
+    if presses is not None and len(presses):
+        centres = [(float(x), float(y)) for x, y in np.asarray(presses, dtype=np.float64).reshape(-1, 2)]
+    else:
+        centres = [(cx, cy) for cx in (sx / 6, sx / 2, 5 * sx / 6) for cy in (sy / 4, 3 * sy / 4)]
+    inc_starts = tuple(inside(_a(cx, cy, sz - 0.012, 0.008, math.log10(4.0))) for cx, cy in centres)
     out["inclusion"] = Candidate(
         "inclusion", ("center_x", "center_y", "center_z", "radius", "log10_stiffness_ratio"), ("m", "m", "m", "m", "-"),
         _a(0.002, 0.002, 0.002, 0.001, 0.1),
@@ -130,7 +137,7 @@ def candidates(size, probe_radius: float) -> dict[str, Candidate]:
         lambda x: {"radius": float(x[0])},
     )
     out["time_offset"] = Candidate(
-        "time_offset", ("offset",), ("s",), _a(0.03), _a(-1.0), _a(1.0), (_a(0.0),),
+        "time_offset", ("offset",), ("s",), _a(0.03), _a(-1.0), _a(1.0), tuple(_a(v) for v in (-0.2, -0.1, 0.0, 0.1, 0.2)),
         lambda x: {"kind": "time_offset", "offset": float(x[0])},
         lambda x: {"offset": float(x[0])},
     )
@@ -141,3 +148,28 @@ def candidates(size, probe_radius: float) -> dict[str, Candidate]:
         lambda x: {"offset": [float(v) for v in x]},
     )
     return out
+
+
+def top_presses(centres: np.ndarray, size, probe_radius: float, *, min_depth: float = 0.001, merge: float = 0.005) -> np.ndarray:
+    """(K, 2) float64, m: (x, y) of the deepest point of each press into the top face.
+
+    Args:
+        centres: (T, 3) probe sphere centres, m, phantom frame (a sequence's path at its
+            frame times).
+        size: (3,) box size, m. probe_radius: m.
+        min_depth: a press reaches at least this far below the rest top, m.
+        merge: presses closer than this (m) to an earlier one are dropped.
+    """
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    sx, sy, sz = (float(v) for v in size)
+    depth = sz - (c[:, 2] - probe_radius)
+    over = (c[:, 0] > 0) & (c[:, 0] < sx) & (c[:, 1] > 0) & (c[:, 1] < sy)
+    pressed = over & (depth > min_depth)
+    out: list[np.ndarray] = []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
+    for a, b in zip(edges[::2], edges[1::2]):
+        k = a + int(np.argmax(depth[a:b]))
+        p = c[k, :2]
+        if all(np.linalg.norm(p - q) >= merge for q in out):
+            out.append(p)
+    return np.array(out).reshape(-1, 2)
