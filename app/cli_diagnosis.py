@@ -12,7 +12,8 @@ def cmd_diagnose(args) -> int:
     from core.diagnosis import DiagnosisConfig, diagnose, write_diagnosis
     from core.identification import executor
 
-    config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement)
+    config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement,
+                             use_force=False if args.no_force else None)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
         if args.network:
             diag = _diagnose_with_network(args, config, ex, cb)
@@ -22,7 +23,8 @@ def cmd_diagnose(args) -> int:
     console = Console()
     if diag.causes:
         for c in diag.causes:
-            console.print(f"cause: [bold]{c.kind}[/bold] {c.parameters} (confidence {c.confidence:.2f}, test gain {100 * (c.gain or 0):.1f} %)")
+            fg = "" if c.force_gain is None else f", force gain {100 * c.force_gain:.1f} %"
+            console.print(f"cause: [bold]{c.kind}[/bold] {c.parameters} (confidence {c.confidence:.2f}, test gain {100 * (c.gain or 0):.1f} %{fg})")
     else:
         console.print("[bold]no effect found[/bold] beyond noise and model-form error")
     if diag.learned_correction:
@@ -37,6 +39,12 @@ def cmd_diagnose(args) -> int:
         f"test error: base {diag.baseline_test_error * 1e3:.3f} mm, extended {diag.extended_test_error * 1e3:.3f} mm "
         f"(gain {100 * diag.extended_gain:.1f} %, 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); noise floor {diag.noise_floor * 1e3:.3f} mm"
     )
+    if diag.force:
+        fz = diag.force
+        console.print(f"probe force on test: RMS error base {fz['baseline_test_rms_N'] * 1e3:.1f} mN (E {fz['base_youngs_modulus']:.4g} Pa), "
+                      f"extended {fz['extended_test_rms_N'] * 1e3:.1f} mN (gain {100 * fz['gain']:.1f} %)")
+    else:
+        console.print(f"probe force: {diag.force_note}")
     print(f"{diag.simulations} simulations in {diag.timings['total']:.0f} s; wrote {out}/diagnosis.json and {out}/report.md")
     return 0
 
@@ -71,6 +79,8 @@ def register(sub) -> None:
     p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="replay grid (default 13 5 5)")
     p.add_argument("--no-youngs", action="store_true", help="keep E at 5e3 Pa instead of fitting it with the claimed causes")
     p.add_argument("--no-mesh-refinement", action="store_true", help="fit E on the replay grid only")
+    p.add_argument("--no-force", action="store_true",
+                   help="leave the force columns out of the evidence (by default they are used when every sequence has them)")
     p.add_argument("--network", metavar="CHECKPOINT",
                    help="a trained correction network (tissuetwin train): report how much of its correction each cause accounts for")
     _add_execution_options(p)

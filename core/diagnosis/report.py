@@ -76,15 +76,12 @@ def _maps(diag: Diagnosis, out: Path) -> None:
     kinds = list(dict.fromkeys(c.kind for c in diag.candidates))
     width = 0.8 / max(len(rounds), 1)
     for j, rnd in enumerate(rounds):
-        vals = [next((max(c.delta_chi2, 1.0) for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
+        vals = [next((c.score for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
         ax.bar(np.arange(len(kinds)) + j * width, vals, width, label=f"round {rnd}")
-    n_val = diag.summary.get("validation_bin_frames", 0)
-    ax.scatter(np.arange(len(kinds)) + 0.4 - width / 2,
-               [max(diag.config.min_delta_chi2, diag.config.gain_per_bin.get(k, diag.config.min_gain_per_bin) * n_val) for k in kinds],
-               marker="_", s=400, color="k", zorder=3, label="claim threshold")
-    ax.set_yscale("log")
+    ax.axhline(1.0, color="k", lw=1, ls="--", label="claim threshold")
+    ax.set_yscale("symlog", linthresh=0.1)
     ax.set_xticks(np.arange(len(kinds)) + 0.4 - width / 2, kinds, rotation=20, fontsize=8)
-    ax.set_ylabel("validation chi2 drop")
+    ax.set_ylabel("evidence (units of the threshold)")
     ax.legend(fontsize=7)
     ax.set_title("evidence per candidate cause", fontsize=9)
     fig.savefig(out / "evidence.png", dpi=110)
@@ -130,14 +127,23 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         lines += ["", "| face | systematic RMS (mm) | total RMS (mm) | bin-frames |", "|---|---|---|---|"]
         for k, v in diag.summary["by_face"].items():
             lines.append(f"| {k} | {_mm(v['systematic_rms_m'])} | {_mm(v['total_rms_m'])} | {v['bin_frames']} |")
+    if diag.force:
+        fz = diag.force
+        lines += ["", f"Probe force: {diag.force_note}. The base model's Young's modulus fitted to it: "
+                      f"{fz['base_youngs_modulus']:.4g} Pa; its RMS force error on test is {1e3 * fz['baseline_test_rms_N']:.1f} mN "
+                      f"(noise {1e3 * float(np.linalg.norm(fz['noise_N'])):.1f} mN)."]
+    else:
+        lines += ["", f"Probe force: {diag.force_note}. Without it, effects that change the force more than the "
+                      "surface (a stiff inclusion, friction, a wrong probe radius) are hard to see."]
     lines += ["", "## Why", ""]
     if diag.causes:
         lines.append("Claimed causes, most important first:")
         lines.append("")
-        lines.append("| cause | parameters | confidence | test error (mm) | gain |")
-        lines.append("|---|---|---|---|---|")
+        lines.append("| cause | parameters | confidence | test error (mm) | gain | force gain |")
+        lines.append("|---|---|---|---|---|---|")
         for c in diag.causes:
-            lines.append(f"| {c.kind} | `{json.dumps(c.parameters)}` | {c.confidence:.2f} | {_mm(c.test_error)} | {100 * (c.gain or 0):.1f} % |")
+            fg = "n/a" if c.force_gain is None else f"{100 * c.force_gain:.1f} %"
+            lines.append(f"| {c.kind} | `{json.dumps(c.parameters)}` | {c.confidence:.2f} | {_mm(c.test_error)} | {100 * (c.gain or 0):.1f} % | {fg} |")
         unid = [f"{c.kind}.{k}" for c in diag.causes for k, ok in c.identifiable.items() if not ok]
         if unid:
             lines += ["", "Not identifiable from these data (95 % interval too wide): " + ", ".join(unid) + "."]
@@ -148,9 +154,15 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         lines += ["", "Confounded (they explain the same residual about equally well; none is picked): "
                   + "; ".join(" / ".join(g) for g in diag.confounded) + "."]
     lines += ["", "![evidence](evidence.png)", "",
-              "| round | candidate | validation chi2 drop | share of chi2 removed | confidence | claimed |", "|---|---|---|---|---|---|"]
+              "Evidence is each candidate's drop of validation chi2, per channel (the binned surface "
+              "residual, and the probe force when recorded), in units of the threshold calibrated for that kind "
+              "on sessions without it; a claim needs more than 1.", "",
+              "| round | candidate | chi2 drop: surface | chi2 drop: force | evidence | confidence | claimed |",
+              "|---|---|---|---|---|---|---|"]
     for c in diag.candidates:
-        lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2:.0f} | {100 * c.explained:.0f} % | {c.confidence:.2f} | {'yes' if c.claimed else ''} |")
+        fo = "n/a" if c.delta_chi2_force is None else f"{c.delta_chi2_force:.0f}"
+        lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2_field:.0f} | {fo} | {c.score:.2f} | {c.confidence:.2f} | "
+                     f"{'yes' if c.claimed else ''} |")
     lines += ["", "## What the fix is worth", ""]
     lo, hi = diag.gain_interval
     lines.append(
@@ -158,6 +170,10 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         f"gain {100 * diag.extended_gain:.1f} % (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %, frame-block bootstrap); "
         f"{_mm(diag.extended_test_error - diag.noise_floor)} mm above the noise floor remains."
     )
+    if diag.force:
+        fz = diag.force
+        lines.append(f"Probe force on test: RMS error {1e3 * fz['baseline_test_rms_N']:.1f} mN (base) -> "
+                     f"{1e3 * fz['extended_test_rms_N']:.1f} mN (extended), gain {100 * fz['gain']:.1f} %.")
     if E.get("identifiable"):
         a, b = E["interval"]
         lines.append(f"Young's modulus with these causes: {E['value']:.4g} Pa (95 % interval {a:.4g}-{b:.4g} Pa).")

@@ -106,6 +106,8 @@ class DiagnoseParams(_Strict):
     grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="grid of the signatures and fits")
     fit_youngs: bool = Field(True, description="fit E with the claimed causes")
     refine_mesh: bool = Field(True, description="fit E on the refined grid too")
+    use_force: Literal["auto", "yes", "no"] = Field(
+        "auto", description="probe force in the evidence, E fitted jointly with each cause (auto: when every sequence has force columns)")
 
 
 class _LearningParams(_ModelParams):
@@ -242,7 +244,8 @@ def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
     from core.simulation.replay import ReplayConfig, prepare_session
 
     prepared = prepare_session(ctx.session_path, ReplayConfig(grid=tuple(p.grid)), picked=ctx.picked, callback=ctx.scaled(0.0, 0.1))
-    config = DiagnosisConfig(grid=tuple(p.grid), fit_youngs=p.fit_youngs, refine_mesh=p.refine_mesh)
+    config = DiagnosisConfig(grid=tuple(p.grid), fit_youngs=p.fit_youngs, refine_mesh=p.refine_mesh,
+                             use_force=None if p.use_force == "auto" else p.use_force == "yes")
     with ctx.executor() as ex:
         diag = diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.1, 0.98))
     return write_diagnose_artifacts(diag, prepared, ctx.artifact_dir, progress=ctx.progress)
