@@ -1,17 +1,21 @@
 """Diagnosis benchmark: hide each effect kind (or none) in generated sessions and score the diagnosis.
 
 Prints the confusion matrix (true kind x named kinds), the mean relative parameter
-error of correctly named causes, the mean test gain and the wall time per diagnosis.
+error of correctly named causes, the mean test gains (the paper's point-to-mesh error
+and, with force data, the RMS force error) and the wall time per diagnosis; with
+``--learned``, the test gain of a small 2D correction network trained on the same
+session, on the same test sequences.
 
-    .venv/bin/python benchmarks/bench_diagnosis.py [--seeds 0 1 2] [--kinds gravity none ...]
-        [--duration 10] [--workers 2] [--sessions DIR] [--json OUT]
+    .venv/bin/python -m benchmarks.bench_diagnosis [--seeds 0 1 2] [--kinds gravity none ...]
+        [--duration 10] [--workers 2] [--no-force] [--sessions DIR] [--json OUT] [--learned]
 
-``--sessions DIR`` keeps the generated sessions there and reuses them on the next run
-(generation is half the time); ``--json OUT`` writes every case's diagnosis.json.
+``--sessions DIR`` keeps the generated sessions there and reuses them on the next run;
+``--json OUT`` writes every case's diagnosis.json (and the network's gain) as it goes.
 
-Sessions are the `small` preset (4 sequences: train x 2, validation, test) with
-``--duration`` s per sequence; magnitudes are those of ``HIDDEN`` below, with the
-inclusion's centre moved by the seed.
+Sessions are :func:`core.lab.scenario`'s: the `small` preset (4 sequences: validation,
+test, two train) with ``--duration`` s per sequence, the magnitudes of
+:func:`core.lab.hidden_effects`, an inclusion whose centre moves with the seed and a
+palpation over it, sliding pokes for friction, and force columns unless ``--no-force``.
 """
 
 from __future__ import annotations
@@ -20,37 +24,17 @@ import argparse
 import json
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from core.diagnosis import KINDS, DiagnosisConfig, diagnose
 from core.identification import executor
-from core.lab import generate_session
-from core.lab.generate import PHANTOM_SIZE, PRESETS
+from core.lab import SCENARIO_KINDS, generate_session, scenario
 
 
-def hidden(kind: str, seed: int) -> list[dict]:
-    """The effect hidden for ``kind`` (empty for "none"), at a detectable magnitude."""
-    rng = np.random.default_rng(1000 + seed)
-    sx, sy, sz = PHANTOM_SIZE
-    table = {
-        "gravity": {"g": [0.0, 0.0, -9.81]},
-        "inclusion": {"center": [float(rng.uniform(0.3, 0.7) * sx), float(rng.uniform(0.35, 0.65) * sy), sz - 0.011],
-                      "radius": 0.009, "stiffness_ratio": 6.0},
-        "viscoelasticity": {"relaxation_time": 0.5, "stiffness_ratio": 2.0},
-        "friction": {"mu": 0.8},
-        "base_compliance": {"stiffness": 5e4},
-        "probe_radius": {"radius": 0.0075},
-        "time_offset": {"offset": 0.15},
-        "kinematic_offset": {"offset": [0.0015, -0.001, -0.0015]},
-    }
-    return [] if kind == "none" else [{"kind": kind, **table[kind]}]
-
-
-def relative_error(kind: str, truth: dict, found: dict) -> float:
-    """Largest relative error over the kind's parameters (vectors by norm)."""
+def relative_error(truth: dict, found: dict) -> float:
+    """Largest relative error over an effect's parameters (vectors by norm)."""
     errs = []
     for k, v in truth.items():
         if k == "kind":
@@ -60,46 +44,70 @@ def relative_error(kind: str, truth: dict, found: dict) -> float:
     return max(errs) if errs else 0.0
 
 
+def learned_gain(session: Path, youngs: float) -> float:
+    """Test gain (in the loop) of a narrow 2D correction network trained on ``session``
+    at ``youngs`` Pa (widths 16/32/64, at most 6 epochs, 1024 points per frame)."""
+    from core.learning import NetworkConfig, TrainConfig, train_and_test
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    config = ReplayConfig(youngs_modulus=youngs)
+    prepared = prepare_session(session, config)
+    report = train_and_test(prepared, config, NetworkConfig(kind="2d", widths=(16, 32, 64)), TrainConfig(max_epochs=6, threads=1))
+    return float(report.to_json()["improvement"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--kinds", nargs="+", default=list(KINDS) + ["none"])
+    ap.add_argument("--kinds", nargs="+", default=list(SCENARIO_KINDS), choices=SCENARIO_KINDS)
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--no-youngs", action="store_true", help="skip the E fit (faster)")
+    ap.add_argument("--no-force", action="store_true", help="sessions without force columns")
+    ap.add_argument("--no-youngs", action="store_true", help="without force: skip the E fit (faster)")
     ap.add_argument("--sessions", type=Path, help="keep (and reuse) the generated sessions in this folder")
     ap.add_argument("--json", type=Path, help="write every case's diagnosis.json into this file")
+    ap.add_argument("--learned", action="store_true", help="also train a small 2D network per session and compare gains")
     args = ap.parse_args()
     labels = list(KINDS) + ["none"]
     confusion = {k: {j: 0 for j in labels} for k in args.kinds}
-    perr, gains, times = [], [], []
-    lab = replace(PRESETS["small"], sequence_durations=(args.duration,) * 4)
+    perr, gains, fgains, times, nets = [], [], [], [], []
     results = {}
+    force = not args.no_force
     with tempfile.TemporaryDirectory() as tmp, executor(workers=args.workers) as ex:
         root = args.sessions or Path(tmp)
         for kind in args.kinds:
             for seed in args.seeds:
-                effects = hidden(kind, seed)
-                path = root / f"{kind}-{seed}-{args.duration:g}s"
+                lab, effects = scenario(kind, seed, args.duration)
+                path = root / f"{kind}-{seed}-{args.duration:g}s{'-force' if force else ''}"
                 if not (path / "session.json").exists():
-                    generate_session(path, preset=lab, seed=seed, effects=effects, overwrite=True)
+                    generate_session(path, preset=lab, seed=seed, effects=effects, with_force=force, overwrite=True)
                 t0 = time.perf_counter()
                 d = diagnose(path, DiagnosisConfig(fit_youngs=not args.no_youngs, refine_mesh=False), executor=ex)
                 dt = time.perf_counter() - t0
                 times.append(dt)
-                results[f"{kind}-{seed}"] = {"hidden": effects, "wall_time_s": dt, "diagnosis": d.to_json()}
-                if args.json:
-                    args.json.write_text(json.dumps(results, indent=1, default=float))
+                case = {"hidden": effects, "wall_time_s": dt, "diagnosis": d.to_json()}
                 named = [c.kind for c in d.causes] or ["none"]
                 for n in named:
                     confusion[kind][n] += 1
-                line = f"{kind:17s} seed {seed}: named {named}, gain {100 * d.extended_gain:5.1f} %, {dt:5.0f} s, {d.simulations} sims"
+                fg = f", force gain {100 * d.force['gain']:5.1f} %" if d.force else ""
+                line = (f"{kind:17s} seed {seed}: named {named}, gain {100 * d.extended_gain:5.1f} %{fg}, "
+                        f"{dt:5.0f} s, {d.simulations} sims")
                 if kind != "none" and kind in named:
                     c = next(c for c in d.causes if c.kind == kind)
-                    e = relative_error(kind, effects[0], c.parameters)
+                    e = relative_error(effects[0], c.parameters)
                     perr.append(e)
                     gains.append(d.extended_gain)
+                    if d.force:
+                        fgains.append(d.force["gain"])
                     line += f", parameter error {100 * e:.0f} % ({json.dumps(c.parameters)})"
+                if args.learned:
+                    E = d.youngs.get("replay_grid_value_used") or 5000.0
+                    case["learned_gain"] = learned_gain(path, E)
+                    nets.append((d.extended_gain, case["learned_gain"]))
+                    line += f"; 2D network gain {100 * case['learned_gain']:.1f} %"
+                results[f"{kind}-{seed}"] = case
+                if args.json:
+                    args.json.write_text(json.dumps(results, indent=1, default=float))
                 print(line, flush=True)
     print("\nconfusion matrix (rows: hidden, columns: named)")
     print(" " * 18 + " ".join(f"{j[:8]:>8s}" for j in labels))
@@ -107,7 +115,12 @@ def main() -> None:
         print(f"{k:18s}" + " ".join(f"{confusion[k][j]:8d}" for j in labels))
     if perr:
         print(f"\nmean relative parameter error of correct claims: {100 * np.mean(perr):.0f} %")
-        print(f"mean test gain of correct claims: {100 * np.mean(gains):.1f} %")
+        print(f"mean test gain of correct claims: {100 * np.mean(gains):.1f} % (paper's point-to-mesh error)")
+    if fgains:
+        print(f"mean force gain of correct claims: {100 * np.mean(fgains):.1f} % (RMS force error on test)")
+    if nets:
+        a = np.array(nets)
+        print(f"mean test gain: diagnosis {100 * a[:, 0].mean():.1f} %, 2D network {100 * a[:, 1].mean():.1f} % (same test sequences)")
     print(f"wall time per diagnosis: mean {np.mean(times):.0f} s, max {np.max(times):.0f} s ({args.workers} workers)")
 
 

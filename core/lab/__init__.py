@@ -10,7 +10,8 @@ Public surface::
     path = generate_session(out, preset="small", seed=0, effects=[{"kind": "gravity"}])
 
 Modules: :mod:`core.lab.probing` (probe trajectories), :mod:`core.lab.camera` (depth
-camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json).
+camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json),
+:mod:`core.lab.scenarios` (a hidden-effect session design per effect kind).
 """
 
 from core.lab.camera import DepthCamera, DepthNoise, Instrument, Intrinsics
@@ -29,8 +30,12 @@ from core.lab.generate import (
     generate_session,
 )
 from core.lab.probing import Poke, ProbePlan, ProbeTrajectory, ProbingConfig, plan_sequence
+from core.lab.scenarios import SCENARIO_KINDS, hidden_effects, scenario
 
 __all__ = [
+    "SCENARIO_KINDS",
+    "hidden_effects",
+    "scenario",
     "GENERATOR_NAME",
     "GENERATOR_VERSION",
     "INPUT_EFFECTS",

@@ -1,0 +1,99 @@
+"""Hidden-effect scenarios: a session design per effect kind, for tests and benchmarks of
+the diagnosis.
+
+Each scenario hides one effect of ``SESSION_FORMAT.md`` (or none) at a magnitude the lab
+can detect, in a ``small``-preset session, with a palpation protocol that exercises it:
+the inclusion's location varies with the seed and the probe searches the region above
+it (a surgeon palpates where a tumour is suspected; an inclusion that no poke comes near
+leaves no trace in any data), and friction is probed by sliding. The other kinds use the
+preset's protocol. Whether a kind is detectable is a property of the data as well as of
+the effect: a wrong probe radius, a stiff inclusion or friction barely change the
+surface the camera sees under a displacement-controlled probe, but change the probe
+force, so force columns are written by default.
+
+    lab, effects = scenario("inclusion", seed=3, duration=6.0)
+    generate_session(out, preset=lab, seed=3, effects=effects, with_force=True)
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from core.lab.generate import PHANTOM_SIZE, PRESETS, LabConfig
+
+__all__ = ["SCENARIO_KINDS", "hidden_effects", "scenario"]
+
+SCENARIO_KINDS = ("gravity", "inclusion", "viscoelasticity", "friction", "base_compliance", "probe_radius",
+                  "time_offset", "kinematic_offset", "none")
+"""Every effect kind of SESSION_FORMAT.md, and "none" (no effect)."""
+
+
+def _inclusion_centre(seed: int) -> np.ndarray:
+    """(3,) m: a seed-varied centre over the middle of the top, its sphere's top 2 mm under it."""
+    rng = np.random.default_rng(1000 + seed)
+    sx, sy, sz = PHANTOM_SIZE
+    return np.array([rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.011])
+
+
+def hidden_effects(kind: str, seed: int) -> list[dict]:
+    """The effect dicts hidden for ``kind`` (SI, phantom frame; empty for "none").
+
+    Magnitudes: standard gravity; a 9 mm inclusion 6x stiffer than the bulk, 2 mm under
+    the top; a Maxwell arm twice as stiff as the elastic solid relaxing in 0.5 s; Coulomb
+    friction 0.8 (wet gel on steel is 0.3-1); a foundation of 5e4 Pa/m (a 5 kPa gel on
+    a soft pad); a 7.5 mm probe recorded as 5 mm; a 0.15 s clock offset (a few camera
+    frames); a robot calibration error of (1.5, -1, -1.5) mm.
+
+    Raises:
+        ValueError: unknown kind.
+    """
+    table = {
+        "gravity": {"g": [0.0, 0.0, -9.81]},
+        "inclusion": {"center": _inclusion_centre(seed).tolist(), "radius": 0.009, "stiffness_ratio": 6.0},
+        "viscoelasticity": {"relaxation_time": 0.5, "stiffness_ratio": 2.0},
+        "friction": {"mu": 0.8},
+        "base_compliance": {"stiffness": 5e4},
+        "probe_radius": {"radius": 0.0075},
+        "time_offset": {"offset": 0.15},
+        "kinematic_offset": {"offset": [0.0015, -0.001, -0.0015]},
+    }
+    if kind == "none":
+        return []
+    if kind not in table:
+        raise ValueError(f"unknown scenario kind {kind!r}; expected one of {SCENARIO_KINDS}")
+    return [{"kind": kind, **table[kind]}]
+
+
+def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConfig = "small") -> tuple[LabConfig, list[dict]]:
+    """The lab configuration and hidden effects of ``kind``'s scenario.
+
+    Args:
+        kind: an effect kind or "none".
+        seed: varies the inclusion's centre (and, through ``generate_session``, everything else).
+        duration: length of each of the preset's sequences, s.
+        preset: the base configuration (default the ``small`` preset: 4 sequences, validation,
+            test and two train).
+
+    Returns:
+        (LabConfig, effects) for :func:`core.lab.generate_session`.
+
+    Raises:
+        ValueError: unknown kind.
+    """
+    effects = hidden_effects(kind, seed)
+    base = PRESETS[preset] if isinstance(preset, str) else preset
+    lab = replace(base, sequence_durations=(float(duration),) * len(base.sequence_roles))
+    probing = lab.probing
+    if kind == "inclusion":
+        c = effects[0]["center"]
+        # pokes land within 9 mm of the centre (x and y), on the sphere and at its rim:
+        # presses at one distance only cannot tell a stiff inclusion from a stiffer bulk
+        half = 0.009
+        probing = replace(probing, top_region=(c[0] - half, c[1] - half, c[0] + half, c[1] + half), side_probability=0.0)
+    elif kind == "friction":
+        # every poke slides, briskly, so that even a 6 s sequence holds a slide
+        probing = replace(probing, slide_probability=1.0, side_probability=0.0, hold_range=(0.3, 0.8),
+                          slide_length_range=(0.004, 0.008), slide_speed_range=(0.006, 0.012))
+    return replace(lab, probing=probing), effects
