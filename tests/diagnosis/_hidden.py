@@ -1,0 +1,24 @@
+"""Shared by the hidden-kind tests: generate a scenario session with force and diagnose it."""
+
+from core.diagnosis import DiagnosisConfig, diagnose
+from core.lab import generate_session, scenario
+
+DURATION = 6.0
+"""Sequence length, s: one or two pokes per sequence, the least that exercises each kind."""
+
+
+def diagnose_hidden(tmp_path, kind: str, seed: int, rivals: tuple[str, ...], fine_refit_iterations: int = 1):
+    """Generate ``kind``'s scenario (:func:`core.lab.scenario`, 4 x 6 s, force columns) at
+    ``seed`` and diagnose it with ``kind`` and its ``rivals`` as the candidates.
+
+    The full candidate set on every kind runs in benchmarks/bench_diagnosis.py (the
+    confusion matrix); here each kind meets the rival that mimicked it most when all
+    eight were fitted, to keep the suite's time (one 25 x 9 x 9 refit iteration, two
+    selection rounds). Returns (diagnosis, hidden effect dict)."""
+    lab, effects = scenario(kind, seed, DURATION)
+    session = generate_session(tmp_path / f"{kind}-{seed}", preset=lab, seed=seed, effects=effects, with_force=True)
+    d = diagnose(session, DiagnosisConfig(fit_youngs=False, n_boot=100, kinds=(kind, *rivals), max_causes=2,
+                                          fine_refit_iterations=fine_refit_iterations))
+    print({c.kind: (c.parameters, c.score, c.delta_chi2_field, c.delta_chi2_force) for c in d.candidates})
+    print([(c.kind, c.parameters, c.gain, c.force_gain) for c in d.causes], d.force, d.timings)
+    return d, effects[0]
