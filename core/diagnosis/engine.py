@@ -131,13 +131,17 @@ class DiagnosisConfig:
 
             kind: our lab / sample -> threshold
               gravity 0.039 / 0.096-0.107 -> 0.16; inclusion < 0.003 / 0.0002-0.21 -> 0.31;
-              viscoelasticity < 0.003 / 0.026-0.046 -> 0.07; friction < 0.003 / 0.027-0.062
+              viscoelasticity < 0.003 / 0.026-0.098 -> 0.15 (see below); friction < 0.003 / 0.027-0.062
               -> 0.09; base_compliance 0.020 / 0.080-0.187 -> 0.28; probe_radius 0.010 /
               0.14 -> 0.21; time_offset < 0.003 / 0.001 -> 0.02 (the floor);
               kinematic_offset < 0.003 / 0.194-0.207 -> 0.31.
 
-            (ranges: runs of successive versions of the method.) Thresholds are 1.5x the
-            largest null; a thin margin, since each null is measured on few sessions. On
+            (ranges: runs of successive versions of the method.) Since the coarse runs
+            step at 1/60 s, a Maxwell arm mimics the sample's gap more: its null there is
+            0.098 with relaxation times from 0.05 s (0.133 when they could reach 0.01 s,
+            below the time step), so its threshold is 0.15; the other kinds' sample nulls
+            stayed below their thresholds (the largest: probe_radius at 0.89 of its own).
+            Thresholds are 1.5x the largest null; a thin margin, since each null is measured on few sessions. On
             the sample, the large nulls share one residual: its dent is ~1.4 mm deeper
             than our replay's, which a vertical probe offset, a foundation, an inclusion
             or a bigger probe each mimic. Our penalty contact (1e7 Pa/m per unit area)
@@ -180,7 +184,7 @@ class DiagnosisConfig:
     min_delta_chi2: float = 25.0
     min_gain_per_bin: float = 0.02
     gain_per_bin: dict = dc_field(default_factory=lambda: {
-        "gravity": 0.16, "inclusion": 0.31, "viscoelasticity": 0.07, "friction": 0.09, "base_compliance": 0.28,
+        "gravity": 0.16, "inclusion": 0.31, "viscoelasticity": 0.15, "friction": 0.09, "base_compliance": 0.28,
         "probe_radius": 0.21, "time_offset": 0.02, "kinematic_offset": 0.31})
     force_gain_per_frame: dict = dc_field(default_factory=dict)
     min_force_gain_per_frame: float = 4.0
