@@ -924,7 +924,7 @@ def diagnose_prepared(
         say(0.04, "fitting Young's modulus of the base model to the force")
         base_fit = _fit_candidate(eng, None, [], E=E_base, fit_youngs=True)
         E_base = base_fit.youngs_modulus
-    E_cur = E_base
+    E_cur, e_fit = E_base, base_fit  # the current E and the joint fit it came from
     lap("base")
 
     fixed: list[dict] = []
@@ -944,7 +944,8 @@ def diagnose_prepared(
             # the round's reference model at its own optimum in E: otherwise any candidate,
             # even one fitted to nothing, gains by moving E further (measured: a foundation
             # of 8e7 Pa/m, a rigid base, claimed after an inclusion for its E alone)
-            E_cur = _fit_candidate(eng, None, fixed, E=E_cur, fit_youngs=True).youngs_modulus
+            e_fit = _fit_candidate(eng, None, fixed, E=E_cur, fit_youngs=True)
+            E_cur = e_fit.youngs_modulus
         cur_val = eng.runs([eng.spec(fixed, E_cur)], "validation")[0]
         cur_f = eng.frame_chi2(cur_val)
         chi_cur = sum(f.sum() for f in cur_f)
@@ -1020,7 +1021,7 @@ def diagnose_prepared(
         reports += list(round_reports.values())
         claimed.append((cands[best], fits[best], round_reports[best]))
         fixed = fixed + fits[best].effects
-        E_cur = fits[best].youngs_modulus
+        E_cur, e_fit = fits[best].youngs_modulus, fits[best]
         active = [k for k in active if k != best and evid[k][5] > 0.3]
         if not active:
             break
@@ -1032,7 +1033,7 @@ def diagnose_prepared(
         for i, (c, f, rep) in enumerate(list(claimed)):
             others = [e for j, (_, g, _) in enumerate(claimed) if j != i for e in g.effects]
             g = _fit_candidate(eng, c, others, E=E_cur, fit_youngs=joint, start=f.x[: nv[c.kind]])
-            E_cur = g.youngs_modulus
+            E_cur, e_fit = g.youngs_modulus, g
             claimed[i] = (c, g, replace(rep, **_fit_fields(c, g)))
     # final refit on the fine grid: the coarse signatures of local causes (a dent's
     # shift, a clock offset) are blurred by 6 x 10 mm elements, and the discrepancy
@@ -1044,16 +1045,15 @@ def diagnose_prepared(
             others = [e for j, (_, g, _) in enumerate(claimed) if j != i for e in g.effects]
             g = _fit_candidate(eng, c, others, E=E_cur, fit_youngs=joint, start=f.x[: nv[c.kind]], fine=True,
                                iterations=cfg.fine_refit_iterations)
-            E_cur = g.youngs_modulus
+            E_cur, e_fit = g.youngs_modulus, g
             claimed[i] = (c, g, replace(rep, **_fit_fields(c, g)))
     ext_effects = [e for _, f, _ in claimed for e in f.effects]
     lap("refits")
 
     E_ext = E_cur
     if joint:
-        # E is fitted with the claimed causes; its interval comes from that fit
-        last = claimed[-1][1] if claimed else base_fit
-        youngs = _joint_youngs(last)
+        # E is fitted with the claimed causes; its interval comes from the fit that set it
+        youngs = _joint_youngs(e_fit)
     else:
         # Young's modulus with the claimed causes (gravity at its physical value)
         say(0.75, "fitting Young's modulus with the claimed causes")

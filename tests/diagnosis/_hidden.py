@@ -22,3 +22,10 @@ def diagnose_hidden(tmp_path, kind: str, seed: int, rivals: tuple[str, ...], fin
     print({c.kind: (c.parameters, c.score, c.delta_chi2_field, c.delta_chi2_force) for c in d.candidates})
     print([(c.kind, c.parameters, c.gain, c.force_gain) for c in d.causes], d.force, d.timings)
     return d, effects[0]
+
+
+def named(d, kind: str):
+    """Assert that ``kind`` is the one cause claimed (nothing confounded) and return it."""
+    assert [c.kind for c in d.causes] == [kind], [(c.kind, c.score) for c in d.candidates]
+    assert d.confounded == []
+    return d.causes[0]

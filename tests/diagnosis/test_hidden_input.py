@@ -11,8 +11,7 @@ The benchmark keeps scoring it."""
 import numpy as np
 import pytest
 
-from tests.diagnosis._hidden import diagnose_hidden
-from tests.diagnosis.test_hidden_physical import _named
+from tests.diagnosis._hidden import diagnose_hidden, named as _named
 
 
 def test_time_offset_is_named_with_its_offset(tmp_path):

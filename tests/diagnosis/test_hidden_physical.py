@@ -10,13 +10,7 @@ measured value and why it is as loose as it is.
 import numpy as np
 import pytest
 
-from tests.diagnosis._hidden import diagnose_hidden
-
-
-def _named(d, kind):
-    assert [c.kind for c in d.causes] == [kind], [(c.kind, c.score) for c in d.candidates]
-    assert d.confounded == []
-    return d.causes[0]
+from tests.diagnosis._hidden import diagnose_hidden, named as _named
 
 
 def test_gravity_is_named_with_its_sag(tmp_path):
