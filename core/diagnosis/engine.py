@@ -75,6 +75,9 @@ SCALE_FREE = frozenset({"inclusion", "viscoelasticity", "friction", "probe_radiu
 body force) and a foundation (a fixed stiffness in Pa/m) set a scale for E of their own."""
 E_STEP = 0.02
 """Forward-difference step of log10 E in the joint fits where it is not semi-analytic."""
+LM_DAMPING = (1e-3, 1e-1, 1.0)
+"""Levenberg-Marquardt damping values (times the diagonal of J^T J), tried in turn until a
+step lowers the train misfit."""
 
 __all__ = ["DiagnosisConfig", "FieldTrial", "FieldRun", "run_field", "Diagnosis", "CauseReport", "diagnose_prepared"]
 
@@ -699,23 +702,25 @@ def _fit_candidate(eng: _Engine, cand: Candidate | None, fixed: list[dict], *, E
             break
         A, g = J.T @ J, J.T @ r_x
         D = np.diag(np.maximum(np.diag(A), 1e-30))
-        trials = []
-        for lam in (1e-3, 1e-1, 1.0):
+        previous = _rss(r_x)
+        accepted = None
+        # damping raised until a step lowers the misfit (Levenberg-Marquardt, Nocedal &
+        # Wright Sec. 10.3); each trial is one replay per train sequence, so trying the
+        # damping values in turn costs one batch when the first is accepted, the usual case
+        for lam in LM_DAMPING:
             try:
                 dx = np.linalg.solve(A + lam * D, -g)
             except np.linalg.LinAlgError:
                 continue
-            trials.append(clip(x + dx))
-        if not trials:
+            x_try = clip(x + dx)
+            r_try = vec(runs([x_try])[0])
+            if _rss(r_try) < previous:
+                accepted = (x_try, r_try)
+                break
+        if accepted is None:
             break
-        out = runs(trials)
-        vals = [_rss(vec(o)) for o in out]
-        k = int(np.argmin(vals))
-        previous = _rss(r_x)
-        if vals[k] >= previous:
-            break
-        x, r_x = trials[k], vec(out[k])
-        if previous - vals[k] < eng.cfg.lm_tolerance * sigma2:
+        x, r_x = accepted
+        if previous - _rss(r_x) < eng.cfg.lm_tolerance * sigma2:
             break  # converged: the last step gained less than lm_tolerance in chi2
     se = np.full(x.size, np.inf)
     if J is not None:
