@@ -76,6 +76,11 @@ class ProbingConfig:
     """``(x0, y0, x1, y1)``, m: top-face contact points are drawn in this rectangle
     (intersected with the edge margins): a palpation that searches a suspect region, as
     a surgeon palpates over a suspected tumour. None: anywhere on the top face."""
+    face_cycle: tuple[str, ...] | None = None
+    """Kinds of face poked in turn, each ``"side"`` (a side face the shaft's tilt allows,
+    drawn at random; the top if none does) or ``"top"``: ``("side", "top")`` presses a side
+    first, then the top, and so on. None: each poke goes into a side with
+    ``side_probability``."""
 
 
 @dataclass(frozen=True)
@@ -335,6 +340,8 @@ def plan_sequence(
     cfg = config
     if duration <= 0:
         raise ValueError(f"duration must be positive, got {duration}")
+    if cfg.face_cycle is not None and not set(cfg.face_cycle) <= {"side", "top"}:
+        raise ValueError(f"face_cycle entries must be 'side' or 'top', got {cfg.face_cycle!r}")
     tilt = np.deg2rad(rng.uniform(*cfg.tilt_range_deg))
     azimuth = rng.uniform(0, 2 * np.pi) if tool_azimuth is None else float(tool_azimuth)
     R = tool_rotation(tilt, azimuth, rng.uniform(-np.pi, np.pi))
@@ -354,7 +361,11 @@ def plan_sequence(
     while failures < (3 if pokes else 50):
         snap = b.snapshot()
         t_start = b.now
-        face = sides[rng.integers(len(sides))] if (sides and rng.random() < cfg.side_probability) else "+z"
+        if cfg.face_cycle:
+            to_side = cfg.face_cycle[len(pokes) % len(cfg.face_cycle)] == "side"
+        else:
+            to_side = rng.random() < cfg.side_probability
+        face = sides[rng.integers(len(sides))] if (sides and to_side) else "+z"
         n = FACE_NORMALS[face]
         point, slide_to, slide_speed = _draw_poke_geometry(rng, face, size, radius, cfg)
         depth = float(rng.uniform(*cfg.depth_range))

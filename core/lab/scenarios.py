@@ -96,4 +96,7 @@ def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConf
         # every poke slides, briskly, so that even a 6 s sequence holds a slide
         probing = replace(probing, slide_probability=1.0, side_probability=0.0, hold_range=(0.3, 0.8),
                           slide_length_range=(0.004, 0.008), slide_speed_range=(0.006, 0.012))
+    elif kind == "probe_radius":
+        probing = replace(probing, face_cycle=("side", "top"), travel_speed=0.08, speed_range=(0.015, 0.025),
+                          hold_range=(0.2, 0.4), rest_range=(0.1, 0.3), start_rest_range=(0.2, 0.4))
     return replace(lab, probing=probing), effects

@@ -1,12 +1,6 @@
-"""Hide an error of the probe input (clock, robot calibration) in a generated session
-with force data and require the diagnosis to name exactly it, recover its parameters
-and gain on the test sequence (see test_hidden_physical.py).
-
-A wrong probe radius has no test here: the calibration touched the corners with the same
-sphere, so the dent's depth is right; its wider dent is hidden under the probe from the
-camera, and its larger force is what a stiffer gel gives (measured: a 7.5 mm probe
-recorded as 5 mm, base E fitted 22 % above the no-effect session's, the radius fitted at 5.3 mm, nothing claimed).
-The benchmark keeps scoring it."""
+"""Hide an error of the probe input (clock, robot calibration, probe radius) in a
+generated session with force data and require the diagnosis to name exactly it, recover
+its parameters and gain on the test sequence (see test_hidden_physical.py)."""
 
 import numpy as np
 import pytest
@@ -32,3 +26,17 @@ def test_kinematic_offset_is_named_with_its_offset(tmp_path):
     assert np.abs(np.array(c.parameters["offset"]) - truth["offset"]).max() < 6e-4
     assert d.force["gain"] > 0
 
+
+
+def test_probe_radius_is_named_from_side_and_top_pokes(tmp_path):
+    """A 7.5 mm probe recorded as 5 mm, seed 2. The corner-touch calibration used the same
+    sphere, so top pokes reach the right depth and only their force grows (what a stiffer
+    gel gives); a side poke goes 2.5 mm deeper than the replay's, which E cannot mimic,
+    and the top pokes in the same sequences rule out a lateral robot offset. Radius within
+    0.5 mm, a fifth of the error (measured 7.72 mm: the side dent is resolved by 6 x 10 mm
+    elements on the coarse grid and 3 x 5 mm on the fine one), and a third of the force
+    error removed (measured 45 %)."""
+    d, truth = diagnose_hidden(tmp_path, "probe_radius", 2, ("kinematic_offset",))
+    c = _named(d, "probe_radius")
+    assert c.parameters["radius"] == pytest.approx(truth["radius"], abs=5e-4)
+    assert d.force["gain"] > 0.3

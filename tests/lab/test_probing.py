@@ -136,3 +136,18 @@ def test_top_region_keeps_every_top_poke_and_slide_inside_it():
     with pytest.raises(ValueError, match="top_region"):
         plan_sequence(rng, size=SIZE, radius=0.005, duration=20.0,
                       config=ProbingConfig(top_region=(0.0, 0.0, 0.005, 0.005), side_probability=0.0))
+
+
+def test_face_cycle_presses_a_side_then_the_top_in_turn():
+    cfg = ProbingConfig(face_cycle=("side", "top"))
+    rng = np.random.default_rng(5)
+    seen = 0
+    for _ in range(6):
+        # a shaft leaning towards +x allows the +x side (and, tilted off-axis, one neighbour)
+        plan = plan_sequence(rng, size=SIZE, radius=0.005, duration=20.0, config=cfg, tool_azimuth=0.3)
+        kinds = [p.kind for p in plan.pokes]
+        assert kinds == ["side", "top"] * (len(kinds) // 2) + ["side"] * (len(kinds) % 2), kinds
+        seen += len(kinds)
+    assert seen >= 12  # several cycles ran
+    with pytest.raises(ValueError, match="face_cycle"):
+        plan_sequence(rng, size=SIZE, radius=0.005, duration=20.0, config=ProbingConfig(face_cycle=("bottom",)))

@@ -33,4 +33,11 @@ def test_friction_is_probed_by_sliding_and_other_kinds_keep_the_preset_protocol(
     lab, _ = scenario("friction", 0)
     assert lab.probing.slide_probability == 1.0
     base, _ = scenario("gravity", 0)
-    assert base.probing.slide_probability < 1.0 and base.probing.top_region is None
+    assert base.probing.slide_probability < 1.0 and base.probing.top_region is None and base.probing.face_cycle is None
+
+
+def test_a_probe_radius_is_probed_on_a_side_and_the_top():
+    """Side pokes show the radius (the calibration keeps the depth of top pokes right);
+    top pokes tell it from a lateral robot offset, which would shift their dents."""
+    lab, (eff,) = scenario("probe_radius", 0, 6.0)
+    assert lab.probing.face_cycle == ("side", "top") and eff["radius"] > lab.probe_radius
