@@ -76,8 +76,7 @@ body force) and a foundation (a fixed stiffness in Pa/m) set a scale for E of th
 E_STEP = 0.02
 """Forward-difference step of log10 E in the joint fits where it is not semi-analytic."""
 LM_DAMPING = (1e-3, 1e-1, 1.0)
-"""Levenberg-Marquardt damping values (times the diagonal of J^T J), tried in turn until a
-step lowers the train misfit."""
+"""Levenberg-Marquardt damping values (times the diagonal of J^T J) of each iteration's trial steps."""
 
 __all__ = ["DiagnosisConfig", "FieldTrial", "FieldRun", "run_field", "Diagnosis", "CauseReport", "diagnose_prepared"]
 
@@ -703,20 +702,30 @@ def _fit_candidate(eng: _Engine, cand: Candidate | None, fixed: list[dict], *, E
         A, g = J.T @ J, J.T @ r_x
         D = np.diag(np.maximum(np.diag(A), 1e-30))
         previous = _rss(r_x)
-        accepted = None
-        # damping raised until a step lowers the misfit (Levenberg-Marquardt, Nocedal &
-        # Wright Sec. 10.3); each trial is one replay per train sequence, so trying the
-        # damping values in turn costs one batch when the first is accepted, the usual case
+        steps_lm = []
         for lam in LM_DAMPING:
             try:
-                dx = np.linalg.solve(A + lam * D, -g)
+                steps_lm.append(clip(x + np.linalg.solve(A + lam * D, -g)))
             except np.linalg.LinAlgError:
                 continue
-            x_try = clip(x + dx)
-            r_try = vec(runs([x_try])[0])
-            if _rss(r_try) < previous:
-                accepted = (x_try, r_try)
-                break
+        accepted = None
+        if fine:
+            # on the fine grid a replay costs ~20 coarse ones: the damping values are tried
+            # in turn and the first step that lowers the misfit is taken (Levenberg-
+            # Marquardt as in Nocedal & Wright Sec. 10.3), from the coarse optimum
+            for x_try in steps_lm:
+                r_try = vec(runs([x_try])[0])
+                if _rss(r_try) < previous:
+                    accepted = (x_try, r_try)
+                    break
+        elif steps_lm:
+            # on the coarse grid all of them are replayed and the best is taken: fewer
+            # iterations for a nonlinear fit far from its start (an inclusion)
+            out = runs(steps_lm)
+            vals = [_rss(vec(o)) for o in out]
+            k = int(np.argmin(vals))
+            if vals[k] < previous:
+                accepted = (steps_lm[k], vec(out[k]))
         if accepted is None:
             break
         x, r_x = accepted

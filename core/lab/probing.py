@@ -363,8 +363,8 @@ def plan_sequence(
         t_start = b.now
         if cfg.face_cycle:
             to_side = cfg.face_cycle[len(pokes) % len(cfg.face_cycle)] == "side"
-        else:
-            to_side = rng.random() < cfg.side_probability
+        else:  # drawn only when a side is allowed: the random stream of older sessions stays
+            to_side = bool(sides) and rng.random() < cfg.side_probability
         face = sides[rng.integers(len(sides))] if (sides and to_side) else "+z"
         n = FACE_NORMALS[face]
         point, slide_to, slide_speed = _draw_poke_geometry(rng, face, size, radius, cfg)

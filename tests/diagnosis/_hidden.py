@@ -1,7 +1,11 @@
-"""Shared by the hidden-kind tests: generate a scenario session with force and diagnose it."""
+"""Shared by the diagnosis tests: generate a session with hidden effects, diagnose it, and
+check what the diagnosis names and writes."""
+
+from dataclasses import replace
 
 from core.diagnosis import DiagnosisConfig, diagnose
 from core.lab import generate_session, scenario
+from core.lab.generate import PRESETS
 
 DURATION = 6.0
 """Sequence length, s: one or two pokes per sequence, the least that exercises each kind."""
@@ -29,3 +33,24 @@ def named(d, kind: str):
     assert [c.kind for c in d.causes] == [kind], [(c.kind, c.score) for c in d.candidates]
     assert d.confounded == []
     return d.causes[0]
+
+
+LAB = replace(PRESETS["small"], sequence_durations=(DURATION,) * 4)
+"""The `small` preset with short sequences (train x 2, validation, test), without force."""
+
+
+def lab_session(tmp_path_factory, name: str, seed: int, effects: list[dict]):
+    """Generate a :data:`LAB` session hiding ``effects`` (no force columns) and return its path."""
+    return generate_session(tmp_path_factory.mktemp("diag") / name, preset=LAB, seed=seed, effects=effects)
+
+
+def check_contract(data: dict, session) -> None:
+    """Assert that ``data`` (a diagnosis.json) has the fields of SESSION_FORMAT.md's contract."""
+    assert data["format"] == "tissue-diagnosis/1" and data["session"] == str(session)
+    assert set(data["youngs_modulus"]) >= {"value", "interval", "identifiable"}
+    assert data["baseline"]["test_error"] > 0
+    for c in data["causes"]:
+        assert set(c) >= {"kind", "parameters", "test_error", "gain", "confidence"}
+        assert 0.0 <= c["confidence"] <= 1.0
+    assert set(data["extended"]) >= {"kinds", "test_error", "gain"}
+    assert set(data["unexplained"]) >= {"test_error", "noise_floor"}
