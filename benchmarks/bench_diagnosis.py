@@ -70,6 +70,8 @@ def main() -> None:
     args = ap.parse_args()
     labels = list(KINDS) + ["none"]
     confusion = {k: {j: 0 for j in labels} for k in args.kinds}
+    exact = {k: 0 for k in args.kinds}
+    per_kind: dict[str, list[tuple[float, float, float | None]]] = {k: [] for k in args.kinds}
     perr, gains, fgains, times, nets = [], [], [], [], []
     results = {}
     force = not args.no_force
@@ -89,6 +91,7 @@ def main() -> None:
                 named = [c.kind for c in d.causes] or ["none"]
                 for n in named:
                     confusion[kind][n] += 1
+                exact[kind] += named == [kind]
                 fg = f", force gain {100 * d.force['gain']:5.1f} %" if d.force else ""
                 line = (f"{kind:17s} seed {seed}: named {named}, gain {100 * d.extended_gain:5.1f} %{fg}, "
                         f"{dt:5.0f} s, {d.simulations} sims")
@@ -99,6 +102,7 @@ def main() -> None:
                     gains.append(d.extended_gain)
                     if d.force:
                         fgains.append(d.force["gain"])
+                    per_kind[kind].append((e, d.extended_gain, d.force["gain"] if d.force else None))
                     line += f", parameter error {100 * e:.0f} % ({json.dumps(c.parameters)})"
                 if args.learned:
                     E = d.youngs.get("replay_grid_value_used") or 5000.0
@@ -109,10 +113,16 @@ def main() -> None:
                 if args.json:
                     args.json.write_text(json.dumps(results, indent=1, default=float))
                 print(line, flush=True)
-    print("\nconfusion matrix (rows: hidden, columns: named)")
-    print(" " * 18 + " ".join(f"{j[:8]:>8s}" for j in labels))
+    print("\nconfusion matrix (rows: hidden, columns: named; a case naming two kinds counts in both)")
+    print(" " * 18 + " ".join(f"{j[:8]:>8s}" for j in labels) + "   exactly")
     for k in args.kinds:
-        print(f"{k:18s}" + " ".join(f"{confusion[k][j]:8d}" for j in labels))
+        print(f"{k:18s}" + " ".join(f"{confusion[k][j]:8d}" for j in labels) + f"   {exact[k]} of {len(args.seeds)}")
+    print("\nper hidden kind, over the cases that named it: mean relative parameter error, mean test gain (surface / force)")
+    for k, rows in per_kind.items():
+        if rows:
+            a = np.array([(e, g, np.nan if f is None else f) for e, g, f in rows])
+            print(f"{k:18s} {len(rows)} named: parameter error {100 * a[:, 0].mean():4.0f} %, "
+                  f"gain {100 * a[:, 1].mean():5.1f} % / {100 * np.nanmean(a[:, 2]) if np.isfinite(a[:, 2]).any() else float('nan'):5.1f} %")
     if perr:
         print(f"\nmean relative parameter error of correct claims: {100 * np.mean(perr):.0f} %")
         print(f"mean test gain of correct claims: {100 * np.mean(gains):.1f} % (paper's point-to-mesh error)")
