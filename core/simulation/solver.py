@@ -131,11 +131,13 @@ def _woodbury_solve(model: Model, rhs, blocks):
     uniq, C = kernels.constraint_matrix(nodes, weights, dirs, model.free_index, model.scratch_slot)
     if uniq.size == 0:
         return y
-    ZT = C.T @ factor.inverse_rows(uniq)  # (k, n) = (A^{-1} H)^T
-    y = y + beta @ ZT
-    S = C.T @ ZT[:, uniq].T
+    # H = E_uniq C, so A^{-1} H = rows^T C with rows = A^{-1}[uniq, :] (m, n): the (k, n)
+    # product (A^{-1} H)^T is never formed, two vector products over rows replace it
+    rows = factor.inverse_rows(uniq)
+    y = y + (C @ beta) @ rows
+    S = C.T @ rows[:, uniq] @ C
     S.flat[:: S.shape[0] + 1] += 1.0 / omega
-    return y - np.linalg.solve(S, C.T @ y[uniq]) @ ZT
+    return y - (C @ np.linalg.solve(S, C.T @ y[uniq])) @ rows
 
 
 def _tangents(n: np.ndarray):
