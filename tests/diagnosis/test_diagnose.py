@@ -1,8 +1,8 @@
 """End to end: hide an effect in a generated session and require the diagnosis to find it.
 
 Sessions are the `small` preset with 6 s sequences (train x 2, validation, test) to keep
-the suite's time; the benchmark (benchmarks/bench_diagnosis.py) runs every kind on three
-seeds at 10 s. Tolerances on parameters are stated per test with their reason.
+the suite's time; the benchmark (benchmarks/bench_diagnosis.py) runs every kind against
+all eight candidates on three seeds. Tolerances on parameters are stated per test with their reason.
 """
 
 import json
