@@ -7,8 +7,12 @@ all eight candidates on three seeds. Tolerances on parameters are stated per tes
 
 import json
 
+import pytest
+
 from app.cli import main
 from tests.diagnosis._hidden import check_contract, lab_session
+
+pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
 
 
 def test_no_effect_gives_no_cause_through_the_command_line(tmp_path_factory, capsys):

@@ -9,6 +9,8 @@ import pytest
 from app.cli import main
 from tests.diagnosis._hidden import check_contract, lab_session
 
+pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
+
 
 def test_two_effects_are_both_named_E_recovered_and_the_learned_correction_explained(tmp_path_factory, capsys):
     """Gravity and a robot calibration offset hidden together (seed 2): both must be

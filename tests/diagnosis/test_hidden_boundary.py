@@ -8,7 +8,11 @@ Tolerances are stated per kind with the measured value and why it is as loose as
 (A file of its own so that the test workers share the hidden-kind diagnoses evenly.)
 """
 
+import pytest
+
 from tests.diagnosis._hidden import diagnose_hidden, named as _named
+
+pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
 
 
 def test_friction_is_named_when_the_probe_slides(tmp_path):

@@ -7,6 +7,8 @@ import pytest
 
 from tests.diagnosis._hidden import diagnose_hidden, named as _named
 
+pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
+
 
 def test_time_offset_is_named_with_its_offset(tmp_path):
     """Within 0.05 s of 0.15 s: the camera sees the offset only while the probe moves

@@ -12,6 +12,8 @@ import pytest
 
 from tests.diagnosis._hidden import diagnose_hidden, named as _named
 
+pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
+
 
 def test_gravity_is_named_with_its_sag(tmp_path):
     """The sag pins g / E and the force pins E. g / E within 5 % of the truth's

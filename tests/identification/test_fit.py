@@ -24,19 +24,30 @@ def test_displacement_only_without_gravity_is_not_identifiable(small_session):
     json.dumps(data)  # serialisable as written to fit.json
 
 
+def _short_small():
+    """The `small` preset with 6 s sequences: the fits below pass as well as at 10 s, in
+    half the time (measured 43 s and 53 s instead of 87 s and 115 s)."""
+    from dataclasses import replace
+
+    from core.lab.generate import PRESETS
+
+    return replace(PRESETS["small"], sequence_durations=(6.0,) * len(PRESETS["small"].sequence_roles))
+
+
 @pytest.fixture(scope="module")
 def force_session(tmp_path_factory):
     from core.lab import generate_session
 
-    return generate_session(tmp_path_factory.mktemp("lab") / "force-s4", preset="small", seed=4, with_force=True)
+    return generate_session(tmp_path_factory.mktemp("lab") / "force-s4", preset=_short_small(), seed=4, with_force=True)
 
 
+@pytest.mark.slow
 def test_force_columns_pin_down_youngs_modulus(force_session):
     """With measured probe force, E is identifiable. The fit uses the truth's material law
     (stable neo-Hookean): with the paper's corotational law the same data give ~5.9 kPa,
     a model-form bias of the linear law at 3-10 mm indentations, not an identification
     error. The replay grid alone (13x5x5) is stiffened by volumetric locking (~3.1 kPa);
-    the refit on the refined grid corrects it."""
+    the refit on the refined grid corrects it (measured 5.22 kPa, interval 4.96-5.49 kPa)."""
     truth = json.loads((force_session / "truth.json").read_text())["youngs_modulus"]
     prepared = prepare_session(force_session)
     with executor(serial=True) as ex:
@@ -49,14 +60,15 @@ def test_force_columns_pin_down_youngs_modulus(force_session):
     assert fit.coarse_value < 0.8 * truth  # locking on the coarse grid, corrected above
 
 
+@pytest.mark.slow
 def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
     """With gravity the sag (~rho g H^2 / E, ~1 mm here) carries E. The fit uses the
-    truth's law (measured 5020 Pa, interval 4990-5079 Pa before the calibration term);
+    truth's law (measured 5014 Pa, interval 4828-5370 Pa with the calibration term);
     the corotational law gives ~5.3 kPa. The interval must contain the truth."""
     from core.lab import generate_session
 
     g = {"kind": "gravity", "g": [0.0, 0.0, -9.81]}
-    path = generate_session(tmp_path / "gravity-s5", preset="small", seed=5, effects=[g])
+    path = generate_session(tmp_path / "gravity-s5", preset=_short_small(), seed=5, effects=[g])
     truth = json.loads((path / "truth.json").read_text())["youngs_modulus"]
     prepared = prepare_session(path)
     base = Trial(sequence="", youngs_modulus=1.0, law="stable_neo_hookean", effects=(g,))
