@@ -13,8 +13,8 @@ pytestmark = pytest.mark.slow  # whole diagnoses, 1-3 min each
 def test_time_offset_is_named_with_its_offset(tmp_path):
     """Within 0.05 s of 0.15 s: the camera sees the offset only while the probe moves
     (15 Hz frames, 67 ms apart). The force, on the robot's clock like the kinematics,
-    carries no trace of it."""
-    d, truth = diagnose_hidden(tmp_path, "time_offset", 0, ("viscoelasticity",))
+    carries no trace of it. Seed 1: measured 0.119 s, surface gain 0.2 %."""
+    d, truth = diagnose_hidden(tmp_path, "time_offset", 1, ("viscoelasticity",))
     c = _named(d, "time_offset")
     assert c.parameters["offset"] == pytest.approx(0.15, abs=0.05)
     assert d.extended_gain > 0
