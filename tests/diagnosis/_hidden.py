@@ -1,14 +1,9 @@
 """Shared by the diagnosis tests: generate a session with hidden effects, diagnose it, and
 check what the diagnosis names and writes."""
 
-from dataclasses import replace
-
 from core.diagnosis import DiagnosisConfig, diagnose
 from core.lab import generate_session, scenario
-from core.lab.generate import PRESETS
-
-DURATION = 6.0
-"""Sequence length, s: one or two pokes per sequence, the least that exercises each kind."""
+from tests._presets import SHORT_DURATION as DURATION, SHORT_SMALL
 
 
 def diagnose_hidden(tmp_path, kind: str, seed: int, rivals: tuple[str, ...], fine_refit_iterations: int = 1):
@@ -35,8 +30,8 @@ def named(d, kind: str):
     return d.causes[0]
 
 
-LAB = replace(PRESETS["small"], sequence_durations=(DURATION,) * 4)
-"""The `small` preset with short sequences (train x 2, validation, test), without force."""
+LAB = SHORT_SMALL
+"""The sessions of the end-to-end tests: the `small` preset with 6 s sequences, without force."""
 
 
 def lab_session(tmp_path_factory, name: str, seed: int, effects: list[dict]):

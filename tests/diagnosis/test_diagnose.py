@@ -1,8 +1,9 @@
-"""End to end: hide an effect in a generated session and require the diagnosis to find it.
+"""End to end through the command line: a session without effects must yield no cause.
 
-Sessions are the `small` preset with 6 s sequences (train x 2, validation, test) to keep
-the suite's time; the benchmark (benchmarks/bench_diagnosis.py) runs every kind against
-all eight candidates on three seeds. Tolerances on parameters are stated per test with their reason.
+The session is the `small` preset with 6 s sequences (train x 2, validation, test) to
+keep the suite's time; hidden effects are in test_hidden_*.py and two of them together
+in test_diagnose_two_effects.py; the benchmark (benchmarks/bench_diagnosis.py) runs every
+kind against all eight candidates on three seeds.
 """
 
 import json

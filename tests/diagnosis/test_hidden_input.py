@@ -29,7 +29,6 @@ def test_kinematic_offset_is_named_with_its_offset(tmp_path):
     assert d.force["gain"] > 0
 
 
-
 def test_probe_radius_is_named_from_side_and_top_pokes(tmp_path):
     """A 7.5 mm probe recorded as 5 mm, seed 2. The corner-touch calibration used the same
     sphere, so top pokes reach the right depth and only their force grows (what a stiffer

@@ -6,6 +6,7 @@ import pytest
 
 from core.identification import Trial, executor, fit_youngs_modulus
 from core.simulation.replay import prepare_session
+from tests._presets import SHORT_SMALL  # 6 s sequences: the fits below pass as at 10 s, in half the time
 
 
 def test_displacement_only_without_gravity_is_not_identifiable(small_session):
@@ -24,21 +25,11 @@ def test_displacement_only_without_gravity_is_not_identifiable(small_session):
     json.dumps(data)  # serialisable as written to fit.json
 
 
-def _short_small():
-    """The `small` preset with 6 s sequences: the fits below pass as well as at 10 s, in
-    half the time (measured 43 s and 53 s instead of 87 s and 115 s)."""
-    from dataclasses import replace
-
-    from core.lab.generate import PRESETS
-
-    return replace(PRESETS["small"], sequence_durations=(6.0,) * len(PRESETS["small"].sequence_roles))
-
-
 @pytest.fixture(scope="module")
 def force_session(tmp_path_factory):
     from core.lab import generate_session
 
-    return generate_session(tmp_path_factory.mktemp("lab") / "force-s4", preset=_short_small(), seed=4, with_force=True)
+    return generate_session(tmp_path_factory.mktemp("lab") / "force-s4", preset=SHORT_SMALL, seed=4, with_force=True)
 
 
 @pytest.mark.slow
@@ -68,7 +59,7 @@ def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
     from core.lab import generate_session
 
     g = {"kind": "gravity", "g": [0.0, 0.0, -9.81]}
-    path = generate_session(tmp_path / "gravity-s5", preset=_short_small(), seed=5, effects=[g])
+    path = generate_session(tmp_path / "gravity-s5", preset=SHORT_SMALL, seed=5, effects=[g])
     truth = json.loads((path / "truth.json").read_text())["youngs_modulus"]
     prepared = prepare_session(path)
     base = Trial(sequence="", youngs_modulus=1.0, law="stable_neo_hookean", effects=(g,))
