@@ -52,11 +52,20 @@ class DaskExecutor(Executor):
 
     def __init__(self, client):
         self.client = client
+        self._shared: tuple | None = None  # (shared object, its future on the workers)
+
+    def _scatter(self, shared):
+        """The workers' copy of ``shared``, sent once per object: a diagnosis maps hundreds
+        of small batches over the same prepared session (~20 MB of clouds), and sending it
+        with every batch cost more than the replays and defeated the workers' caches."""
+        if self._shared is None or self._shared[0] is not shared:
+            self._shared = (shared, self.client.scatter(shared, broadcast=True, hash=False))
+        return self._shared[1]
 
     def map(self, fn, shared, items, progress=None):
         from distributed import as_completed
 
-        ref = self.client.scatter(shared, broadcast=True, hash=False)
+        ref = self._scatter(shared)
         futures = [self.client.submit(fn, ref, item, pure=False) for item in items]
         done = 0
         for _ in as_completed(futures):

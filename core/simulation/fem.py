@@ -27,6 +27,7 @@ __all__ = [
     "linear_stiffness",
     "pk1_corotational",
     "pk1_stable_neo_hookean",
+    "pk1_stable_yeoh",
     "corotated_strain",
     "stress_linear",
     "rotate_stress",
@@ -188,6 +189,40 @@ def pk1_stable_neo_hookean(F: np.ndarray, mu, lam) -> np.ndarray:
     cof = _cofactor(F)
     J = F[0] * cof[0] + F[1] * cof[1] + F[2] * cof[2]
     return mu * F + (lam_s * (J - alpha)) * cof
+
+
+def pk1_stable_yeoh(F: np.ndarray, mu, lam, stiffening) -> np.ndarray:
+    """First Piola-Kirchhoff stress of the stable neo-Hookean solid with a Yeoh-type
+    strain-stiffening term, (9, E) Pa.
+
+    Energy ``Psi = Psi_SNH + k mu/2 I_D^2`` with ``Psi_SNH`` of
+    :func:`pk1_stable_neo_hookean`, ``k = stiffening`` (dimensionless, >= 0) and
+    ``I_D = I_C - 3 - 2 (J - 1)``, ``I_C = tr(F^T F)``, so
+    ``P_extra = 2 k mu I_D (F - cof F)``.
+
+    This is the second-order term of Yeoh's polynomial in ``I_1 - 3`` (Yeoh 1993, "Some
+    forms of the strain energy function for rubber", Rubber Chem. Technol. 66:754;
+    ``C_20 = k mu / 2``), written for a compressible solid the way Smith, de Goes & Kim
+    2018 (Sec. 3.3) write their neo-Hookean term: ``mu/2 I_D`` is exactly the rest-stable
+    deviatoric part of their energy. Yeoh's ``I_1`` belongs to incompressible rubber; for
+    isochoric motions (J = 1) ``I_D = I_C - 3`` and the two coincide. The plain
+    ``(I_C - 3)^2`` would not do here: ``I_C - 3 ~ 2 tr(eps)`` is first order in a
+    compressible strain, so that term adds ``4 k mu`` to the small-strain Lamé lambda
+    (measured: several times the column force at 0.1 % strain with nu = 0.3), breaking the
+    replay's and the lab's constant rest Jacobian. ``I_D`` is second order in the strain,
+    the extra stress third order: the small-strain limit is linear elasticity with
+    (mu, lam), and the material stiffens at large stretch or compression. Defined for
+    inverted elements (J <= 0), as the stable neo-Hookean law.
+
+    Args:
+        F: (9, E) deformation gradients (component-major, see the module docstring).
+        mu, lam: Lamé parameters, Pa, scalars or (E,).
+        stiffening: the coefficient k, scalar or (E,).
+    """
+    cof = _cofactor(F)
+    J = F[0] * cof[0] + F[1] * cof[1] + F[2] * cof[2]
+    I_D = (F * F).sum(axis=0) - 1.0 - 2.0 * J
+    return pk1_stable_neo_hookean(F, mu, lam) + (2.0 * stiffening * mu * I_D) * (F - cof)
 
 
 def corotated_strain(F: np.ndarray, R: np.ndarray) -> np.ndarray:

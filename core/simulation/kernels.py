@@ -33,7 +33,41 @@ def _quat_mat(qx, qy, qz, qw, R):
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
-def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out, store, v, beta):
+def _stable_yeoh_pk1(F, mu, lam, stiffening, P):
+    """PK1 stress of law 2 into P (9,): stable neo-Hookean plus the Yeoh-type term
+    ``2 k mu I_D (F - cof F)``, ``I_D = I_C - 3 - 2 (J - 1)`` (see fem.pk1_stable_yeoh).
+    A function of its own so that the law-1 code of :func:`element_forces` compiles as
+    before (bit-identical truth of older lab sessions)."""
+    f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
+    c0 = f4 * f8 - f5 * f7
+    c1 = f5 * f6 - f3 * f8
+    c2 = f3 * f7 - f4 * f6
+    c3 = f2 * f7 - f1 * f8
+    c4 = f0 * f8 - f2 * f6
+    c5 = f1 * f6 - f0 * f7
+    c6 = f1 * f5 - f2 * f4
+    c7 = f2 * f3 - f0 * f5
+    c8 = f0 * f4 - f1 * f3
+    J = f0 * c0 + f1 * c1 + f2 * c2
+    lam_s = lam + mu
+    g = lam_s * (J - (1.0 + mu / lam_s))
+    ic = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8
+    hy = 2.0 * stiffening * mu * (ic - 1.0 - 2.0 * J)
+    m = mu + hy
+    g = g - hy
+    P[0] = m * f0 + g * c0
+    P[1] = m * f1 + g * c1
+    P[2] = m * f2 + g * c2
+    P[3] = m * f3 + g * c3
+    P[4] = m * f4 + g * c4
+    P[5] = m * f5 + g * c5
+    P[6] = m * f6 + g * c6
+    P[7] = m * f7 + g * c7
+    P[8] = m * f8 + g * c8
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
+def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, R_out, store, v, beta, stiffening):
     """Fused per-element pass: deformation gradient, rotation, PK1 stress, force scatter.
 
     Args:
@@ -44,12 +78,15 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
             computed (Newton iterations on the polar decomposition, see below).
         iterations: rotation-extraction iterations (0: skip rotations).
         law: 0 corotational linear (Müller & Gross 2004), 1 stable neo-Hookean
-            (Smith et al. 2018; see :mod:`core.simulation.fem` for the exact energy).
+            (Smith et al. 2018), 2 stable neo-Hookean plus the Yeoh-type stiffening
+            term ``stiffening * mu / 2 * (I_C - 3 - 2 (J - 1))^2`` (Yeoh 1993); see
+            :func:`core.simulation.fem.pk1_stable_yeoh` for the exact energies.
         F_out, R_out: (E, 9) buffers receiving F and R (row-major 3x3 per element)
             when ``store`` is true (extra stress terms need them).
         v, beta: node velocities (N, 3) m/s and the Rayleigh stiffness coefficient (s);
             when beta > 0 the stiffness damping ``-beta K v`` (K the rest small-strain
             stiffness) is added, computed as the linear stress of the velocity gradient.
+        stiffening: dimensionless Yeoh coefficient of law 2 (ignored by laws 0 and 1).
 
     Returns:
         (N, 3) internal nodal forces, N.
@@ -138,7 +175,7 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
                 tr += R[c] * F[c]
             for c in range(9):
                 P[c] = 2.0 * mu[e] * (F[c] - R[c]) + lam[e] * tr * R[c]
-        else:
+        elif law == 1:
             f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
             c0 = f4 * f8 - f5 * f7
             c1 = f5 * f6 - f3 * f8
@@ -161,6 +198,8 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
             P[6] = mu[e] * f6 + g * c6
             P[7] = mu[e] * f7 + g * c7
             P[8] = mu[e] * f8 + g * c8
+        else:
+            _stable_yeoh_pk1(F, mu[e], lam[e], stiffening, P)
         if store:
             for c in range(9):
                 F_out[e, c] = F[c]

@@ -8,6 +8,8 @@ the model's matrices (Young's modulus, an inclusion, supports) need a fresh mode
 
 from __future__ import annotations
 
+import hashlib
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -22,7 +24,7 @@ from core.simulation.mesh import TetMesh
 
 __all__ = ["Material", "SimulationConfig", "Model", "ModelBuilder", "State", "MaxwellArm", "build_model"]
 
-LAWS = ("corotational", "stable_neo_hookean")
+LAWS = ("corotational", "stable_neo_hookean", "stable_yeoh")
 
 
 @dataclass(frozen=True)
@@ -33,18 +35,29 @@ class Material:
         youngs_modulus: Young's modulus E in Pa (the paper identifies 5e3 Pa).
         poisson_ratio: Poisson's ratio nu (the paper takes literature values, 0.4-0.5).
         law: "corotational" (linear elasticity in a rotated frame, Müller & Gross 2004;
-            the replay's base model) or "stable_neo_hookean" (Smith et al. 2018; the
-            virtual lab's truth).
+            the replay's base model), "stable_neo_hookean" (Smith et al. 2018; the
+            virtual lab's truth) or "stable_yeoh" (stable neo-Hookean plus a Yeoh-type
+            strain-stiffening term ``stiffening * mu / 2 * (I_C - 3)^2``, Yeoh 1993; see
+            :func:`core.simulation.fem.pk1_stable_yeoh`; a randomised lab's truth).
+        stiffening: dimensionless coefficient of the Yeoh term, finite and >= 0; used
+            only by the "stable_yeoh" law (0 makes it stable neo-Hookean).
+
+    Raises:
+        SimulationError: unknown law, non-physical E or nu, or a negative or non-finite
+            stiffening.
     """
 
     youngs_modulus: float = 5000.0
     poisson_ratio: float = 0.44
     law: str = "corotational"
+    stiffening: float = 0.0
 
     def __post_init__(self):
         if self.law not in LAWS:
             raise SimulationError(f"material law must be one of {LAWS}, got {self.law!r}")
         fem.check_material(self.youngs_modulus, self.poisson_ratio)
+        if not (np.isfinite(self.stiffening) and self.stiffening >= 0):
+            raise SimulationError(f"stiffening must be finite and >= 0, got {self.stiffening}")
 
 
 @dataclass(frozen=True)
@@ -56,8 +69,23 @@ class SimulationConfig:
         rayleigh_mass: Rayleigh damping coefficient alpha on M, 1/s (paper: 0.1).
         rayleigh_stiffness: Rayleigh damping coefficient beta on K, s (paper: 0.1).
         contact_stiffness: penalty stiffness of the probe contact per unit surface
-            area, Pa/m. Finite on purpose: contact compliance is physical and is the
-            weak trace of E in displacement-controlled data.
+            area, Pa/m; None (default): ``contact_stiffness_per_modulus`` times the
+            material's Young's modulus, so that the contact scales with the body.
+        contact_stiffness_per_modulus: the default contact stiffness per unit area and
+            per pascal of Young's modulus, 1/m. At 2e5 /m (1e9 Pa/m for a 5 kPa gel) the
+            sphere sinks 0.13-0.18 mm into the replayed surface at 0.3-0.9 N, which is the
+            one-step lag of the active contact set, not the penalty's compliance (measured
+            on a 6 s session: 0.45 mm on average with the former 1e7 Pa/m). A steel probe in a
+            gel hardly sinks at all; a soft penalty made every replayed dent shallower than
+            the measured one, which a downward robot offset or a larger probe then
+            mimicked. Scaling with E keeps the quasi-static model exactly invariant to E
+            (every stiffness proportional to it): displacements do not depend on E and the
+            force is proportional to it.
+        contact_margin: triangles within this distance of the probe sphere (m) are
+            contact candidates of a step, active once the step would push them inside.
+        contact_iterations: most active-set passes of a step's contact solve.
+        contact_tolerance: a candidate is activated when the step would push it more
+            than this far inside the sphere, m.
         newton_iterations: corrections per step with the constant rest Jacobian
             (1 is the linearly implicit Euler step; more converge to full implicit Euler).
         polar_iterations: Newton iterations of the warm-started rotation extraction per
@@ -73,7 +101,11 @@ class SimulationConfig:
     dt: float = 1.0 / 120.0
     rayleigh_mass: float = 0.1
     rayleigh_stiffness: float = 0.1
-    contact_stiffness: float = 1e7
+    contact_stiffness: float | None = None
+    contact_stiffness_per_modulus: float = 2e5
+    contact_margin: float = 0.001
+    contact_iterations: int = 8
+    contact_tolerance: float = 1e-6
     newton_iterations: int = 1
     polar_iterations: int = 1
     integrator: str = "implicit_euler"
@@ -87,8 +119,13 @@ class SimulationConfig:
             raise SimulationError(f"unknown integrator {self.integrator!r}")
         if self.newton_iterations < 1 or self.polar_iterations < 1:
             raise SimulationError("newton_iterations and polar_iterations must be >= 1")
-        if self.rayleigh_mass < 0 or self.rayleigh_stiffness < 0 or self.contact_stiffness <= 0:
-            raise SimulationError("damping must be >= 0 and contact stiffness > 0")
+        if self.rayleigh_mass < 0 or self.rayleigh_stiffness < 0:
+            raise SimulationError("damping must be >= 0")
+        k = self.contact_stiffness
+        if (k is not None and not (np.isfinite(k) and k > 0)) or not (
+                np.isfinite(self.contact_stiffness_per_modulus) and self.contact_stiffness_per_modulus > 0):
+            raise SimulationError(f"contact stiffness must be positive, got {k} Pa/m and "
+                                  f"{self.contact_stiffness_per_modulus} /m per Pa")
 
 
 class MaxwellArm:
@@ -213,6 +250,35 @@ class _BandedSPD:
         return self._rows[slots]
 
 
+_FACTORS: "OrderedDict[bytes, _BandedSPD]" = OrderedDict()
+_FACTORS_KEPT = 4
+
+
+def _factor_of(A: sp.csr_matrix) -> _BandedSPD:
+    """The banded Cholesky factor of ``A``, shared by every model of this process with the
+    same system matrix (least recently used of :data:`_FACTORS_KEPT` kept).
+
+    Fits and diagnoses replay many models that differ only in what leaves the matrix alone
+    (the probe input, a body force, friction): a factorisation cost as much as the replay
+    of a 6 s sequence on the 13x5x5 grid, and the cached rows of the inverse that contact
+    builds up are shared too."""
+    A = A.tocsr()
+    A.sort_indices()
+    h = hashlib.blake2b(digest_size=20)
+    for arr in (np.asarray(A.shape, dtype=np.int64), A.indptr, A.indices, A.data):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    key = h.digest()
+    f = _FACTORS.get(key)
+    if f is None:
+        f = _BandedSPD(A)
+        _FACTORS[key] = f
+        while len(_FACTORS) > _FACTORS_KEPT:
+            _FACTORS.popitem(last=False)
+    else:
+        _FACTORS.move_to_end(key)
+    return f
+
+
 @dataclass(frozen=True)
 class Model:
     """Immutable simulation model. Build with :func:`build_model`.
@@ -227,6 +293,8 @@ class Model:
         node_mass: (N,) kg. mu, lam: (E,) Lamé parameters, Pa.
         free: (N,) bool, nodes that move. free_dofs: (3F,) flat dof indices.
         support_stiffness: (N,) N/m. body_force: (N, 3) N. friction: Coulomb mu.
+        contact_stiffness: penalty stiffness of the probe contact per unit area, Pa/m
+            (``config.contact_stiffness``, or its per-modulus default times E).
         K: (3N, 3N) CSR small-strain elastic stiffness (no supports), N/m.
         terms: extra stress terms (e.g. a Maxwell arm).
         mass_dofs: (3N,) node masses repeated per dof, kg.
@@ -255,6 +323,7 @@ class Model:
     scratch_slot: np.ndarray = field(repr=False, default=None)
     has_body_force: bool = False
     has_supports: bool = False
+    contact_stiffness: float = 1e9
     _factor: _BandedSPD | None = field(repr=False, default=None)
 
     @property
@@ -351,7 +420,7 @@ def build_model(
             sp.diags((1.0 + dt * config.rayleigh_mass) * m3 + dt * dt * np.repeat(builder.support_stiffness, 3))
             + k_lhs * K
         ).tocsr()[free_dofs][:, free_dofs]
-        factor = _BandedSPD(A)
+        factor = _factor_of(A)
     return Model(
         mesh=mesh,
         material=material,
@@ -373,5 +442,7 @@ def build_model(
         scratch_slot=np.full(free_dofs.size, -1, dtype=np.int64),
         has_body_force=bool(np.any(builder.body_force)),
         has_supports=bool(np.any(builder.support_stiffness)),
+        contact_stiffness=float(config.contact_stiffness if config.contact_stiffness is not None
+                                else config.contact_stiffness_per_modulus * material.youngs_modulus),
         _factor=factor,
     )

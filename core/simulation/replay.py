@@ -59,6 +59,8 @@ class ReplayConfig:
         voxel_size: voxel downsampling of cleaned clouds, m (0 disables).
         max_points: random subsample of each cleaned cloud (None keeps all).
         supersample: mesh super-sampling factor of the error (paper: 3).
+        path_smoothing: the calibrated probe path is low-passed by a Gaussian kernel of
+            this many seconds (:meth:`ProbePath.smoothed`; 0 keeps the raw kinematics).
     """
 
     youngs_modulus: float = 5000.0
@@ -71,6 +73,7 @@ class ReplayConfig:
     voxel_size: float = 0.001
     max_points: int | None = None
     supersample: int = 3
+    path_smoothing: float = 0.01
 
 
 @dataclass(frozen=True)
@@ -297,7 +300,7 @@ def _prepare_sequence(session: Session, name: str, cal: Calibration, config: Rep
     seq = session.sequences[name]
     kin = seq.kinematics
     Tpr = cal.T_phantom_robot
-    path = ProbePath(kin.t, _transform(Tpr, kin.position))
+    path = ProbePath(kin.t, _transform(Tpr, kin.position)).smoothed(config.path_smoothing)
     frame_t = seq.frames.t
     centres_f, axes_f = probe_pose_phantom(kin, frame_t, Tpr)  # axes: tool z, shaft -> tip
     clouds = []

@@ -94,11 +94,12 @@ def internal_forces(model: Model, x: np.ndarray, state: State, dt: float, v: np.
     F = np.empty((n_el, 9) if store else (1, 9))
     R = np.empty((n_el, 9) if store else (1, 9))
     iters = model.config.polar_iterations if model.needs_rotation else 0
-    law = 0 if model.material.law == "corotational" else 1
+    law = {"corotational": 0, "stable_neo_hookean": 1, "stable_yeoh": 2}[model.material.law]
     beta = model.config.rayleigh_stiffness if v is not None else 0.0
     vv = v if v is not None else x[:1]
     f = kernels.element_forces(
-        x, model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, q, iters, law, F, R, store, vv, beta
+        x, model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, q, iters, law, F, R, store, vv, beta,
+        float(model.material.stiffening),
     )
     new_terms = []
     for term, s in zip(model.terms, state.term_state):
@@ -112,14 +113,16 @@ def internal_forces(model: Model, x: np.ndarray, state: State, dt: float, v: np.
     return f, q, tuple(new_terms)
 
 
-def _woodbury_solve(model: Model, rhs, blocks):
+def _woodbury_solve(model: Model, rhs, blocks, y=None):
     """Solve ``(A + H diag(omega) H^T) d = rhs + H beta`` with A's cached factor.
 
     ``blocks`` is a list of (nodes (k,3), weights (k,3), directions (k,3), omega (k,),
-    beta (k,)) constraint groups (normal contact, friction tangents).
+    beta (k,)) constraint groups (normal contact, friction tangents). ``y``: ``A^-1 rhs``
+    when already known (the active-set passes of a step share it).
     """
     factor = model._factor
-    y = factor.solve(rhs)
+    if y is None:
+        y = factor.solve(rhs)
     blocks = [b for b in blocks if b[0].shape[0]]
     if not blocks:
         return y
@@ -173,25 +176,44 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
     v0 = state.v.ravel()
     x0 = state.x.ravel()
     vg = v0
-    contacts = None
+    contacts = candidates = active = None
     q, terms = state.q, state.term_state
     for it in range(cfg.newton_iterations):
         xp = x0 + dt * vg
         f, q, terms = internal_forces(model, xp.reshape(-1, 3), state, dt, vg.reshape(-1, 3))  # includes -beta K v
         r = (dt * (f.ravel() - cfg.rayleigh_mass * m3 * vg) - m3 * (vg - v0))[fd]
         if it == 0:
-            contacts = find_contacts(xp.reshape(-1, 3), tris, centre, radius)
-        while True:  # re-solve without constraints that would pull (adhesion)
-            blocks = _constraint_blocks(model, contacts, xp, vg, vp, dt, centre, radius)
-            dv = _woodbury_solve(model, r, blocks)
-            if len(contacts) == 0:
+            # candidates: every triangle within a margin of the sphere, so that a triangle
+            # the step pushes into the sphere is handled in this step, not the next
+            candidates = find_contacts(xp.reshape(-1, 3), tris, centre, radius + cfg.contact_margin)
+            active = _gap(candidates, xp.reshape(-1, 3), centre, radius) > 0
+        # active set of the linearised contact problem (a QP in the contact forces):
+        # a constraint that would pull is released, a candidate the step pushes inside is
+        # added, until neither happens (Nocedal & Wright, Sec. 16.5). Deciding only from
+        # the gaps at the step's start made a stiff contact chatter with period two steps
+        # (on, pushed out, off, falls in), with a steady force that depended on dt.
+        y = model._factor.solve(r)
+        x_try = xp
+        for _ in range(cfg.contact_iterations):
+            contacts = _subset(candidates, active)
+            blocks = _constraint_blocks(model, contacts, xp, vg, vp, dt, centre, radius, friction=False)
+            dv = _woodbury_solve(model, r, blocks, y)
+            if len(candidates) == 0:
                 break
             x_try = xp.copy()
             x_try[fd] += dt * dv
-            pulling = _gap(contacts, x_try.reshape(-1, 3), centre, radius) < 0
-            if not np.any(pulling):
+            g = _gap(candidates, x_try.reshape(-1, 3), centre, radius)
+            changed = (active & (g < 0)) | (~active & (g > cfg.contact_tolerance))
+            if not np.any(changed):
                 break
-            contacts = _subset(contacts, ~pulling)
+            active = active ^ changed
+        if model.friction > 0 and len(contacts):
+            # Coulomb friction bounded by the normal force this step's contact solve found:
+            # with a stiff contact the gap at the step's start says nothing about it (a
+            # contact activated by the solve starts at zero gap, which gave no friction)
+            fn = model.contact_stiffness * contacts.area * np.maximum(_gap(contacts, x_try.reshape(-1, 3), centre, radius), 0.0)
+            blocks = _constraint_blocks(model, contacts, xp, vg, vp, dt, centre, radius, normal_force=fn)
+            dv = _woodbury_solve(model, r, blocks, y)
         vg = vg.copy()
         vg[fd] += dv
     x_new = x0 + dt * vg
@@ -199,7 +221,7 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
     force = np.zeros(3)
     if len(contacts):
         phi = np.maximum(_gap(contacts, xn, centre, radius), 0.0)
-        fn = cfg.contact_stiffness * contacts.area * phi
+        fn = model.contact_stiffness * contacts.area * phi
         force = (fn[:, None] * contacts.normals).sum(0)
         # friction: the implicit tangential force c_t (v_probe - v_point) . t of each tangent row
         v_new = vg.reshape(-1, 3)
@@ -223,18 +245,20 @@ def _gap(c: Contacts, x: np.ndarray, centre: np.ndarray, radius: float) -> np.nd
     return radius - np.einsum("kd,kd->k", c.normals, p - centre)
 
 
-def _constraint_blocks(model: Model, c: Contacts, xp, vg, vp, dt, centre, radius):
+def _constraint_blocks(model: Model, c: Contacts, xp, vg, vp, dt, centre, radius, *, friction: bool = True,
+                       normal_force=None):
     """Low-rank terms of the active contacts: penalty along the normal, and
     regularised Coulomb friction along two tangents (Wriggers, "Computational
-    Contact Mechanics", Sec. 5.2: viscous regularisation of the stick branch)."""
+    Contact Mechanics", Sec. 5.2: viscous regularisation of the stick branch), bounded by
+    ``normal_force`` (k,) N (default: the penalty force of the gaps at ``xp``)."""
     cfg = model.config
     if len(c) == 0:
         return []
-    k = cfg.contact_stiffness * c.area
+    k = model.contact_stiffness * c.area
     phi = _gap(c, xp.reshape(-1, 3), centre, radius)
     blocks = [(c.nodes, c.weights, c.normals, dt * dt * k, dt * k * phi)]
-    if model.friction > 0:
-        fn = np.maximum(k * phi, 0.0)
+    if friction and model.friction > 0:
+        fn = np.maximum(k * phi, 0.0) if normal_force is None else np.asarray(normal_force, dtype=np.float64)
         t1, t2 = _tangents(c.normals)
         v_pt = np.einsum("kj,kjd->kd", c.weights, vg.reshape(-1, 3)[c.nodes])
         rel = v_pt - vp[None, :]
@@ -261,7 +285,7 @@ def _step_explicit(model: Model, state: State, centre, radius, vp):
     fc = np.zeros_like(state.x)
     force = np.zeros(3)
     if len(contacts):
-        fn = cfg.contact_stiffness * contacts.area * np.maximum(contacts.depth, 0.0)
+        fn = model.contact_stiffness * contacts.area * np.maximum(contacts.depth, 0.0)
         for j in range(3):
             np.add.at(fc, contacts.nodes[:, j], (fn * contacts.weights[:, j])[:, None] * contacts.normals)
         force = (fn[:, None] * contacts.normals).sum(0)

@@ -1,0 +1,198 @@
+"""Base declarations of the effect kinds: :class:`Effect`, :class:`FitSpace`,
+:class:`PhantomContext` (see :mod:`core.simulation.effects`)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING, Callable, ClassVar
+
+import numpy as np
+
+from core.errors import SimulationError
+
+if TYPE_CHECKING:  # pragma: no cover
+    from core.simulation.model import ModelBuilder
+    from core.simulation.probe import ProbePath
+
+__all__ = ["PhantomContext", "FitSpace", "Effect"]
+
+
+@dataclass(frozen=True)
+class PhantomContext:
+    """What a kind's fit space, sizes and examples need to know of a session.
+
+    Attributes:
+        size: (3,) float64 box size, m (x length, y width, z height), phantom frame.
+        probe_radius: the nominal probe radius of session.json, m.
+        presses: (K, 2) float64 (x, y), m, phantom frame, where the probe pressed into
+            the top face (the deepest point of each press; may be empty). An inclusion
+            changes the data only near where the probe pressed.
+    """
+
+    size: np.ndarray
+    probe_radius: float = 0.005
+    presses: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+    def __post_init__(self):
+        size = np.asarray(self.size, dtype=np.float64).reshape(-1)
+        if size.shape != (3,) or not np.all(size > 0):
+            raise SimulationError(f"phantom size must be 3 positive lengths in m, got {self.size!r}")
+        object.__setattr__(self, "size", size)
+        object.__setattr__(self, "probe_radius", _positive("probe radius", self.probe_radius))
+        object.__setattr__(self, "presses", np.asarray(self.presses, dtype=np.float64).reshape(-1, 2))
+
+
+@dataclass(frozen=True)
+class FitSpace:
+    """One effect kind as a fit problem.
+
+    Fit variables are in units where the data are close to linear in them (log10 for
+    scale parameters, metres and seconds otherwise).
+
+    Attributes:
+        kind: effect kind (SESSION_FORMAT.md).
+        names: names of the fit variables. units: their units, for reports.
+        steps: (n,) finite-difference step of each variable.
+        lower, upper: (n,) bounds of each variable.
+        starts: starting vectors (the best of them by train misfit is refined). Kinds
+            whose signature vanishes at the base model (an inclusion of ratio 1 has no
+            centre to differentiate) or is strongly nonlinear start from a small grid.
+        to_effect: vector -> effect dict ``{"kind": ..., **parameters}`` (SI, phantom frame).
+        to_parameters: vector -> the SESSION_FORMAT parameters of the kind.
+        project: optional map of a bounded vector onto the feasible set, for
+            constraints that couple variables (an inclusion's sphere inside the box).
+        searches: how many effectively separate places the fit searches (an inclusion's
+            starting locations): a claim's look-elsewhere factor.
+    """
+
+    kind: str
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    steps: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    starts: tuple[np.ndarray, ...]
+    to_effect: Callable[[np.ndarray], dict]
+    to_parameters: Callable[[np.ndarray], dict]
+    project: Callable[[np.ndarray], np.ndarray] | None = None
+    searches: int = 1
+
+    def clip(self, x: np.ndarray) -> np.ndarray:
+        """``x`` clipped to the bounds, then projected onto the feasible set, (n,) float64."""
+        x = np.clip(np.asarray(x, dtype=np.float64), self.lower, self.upper)
+        return x if self.project is None else self.project(x)
+
+
+def _a(*v) -> np.ndarray:
+    return np.array(v, dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class Effect:
+    """Base class of the effect kinds (see the module docstring). Subclasses set the
+    class attributes and override the hooks they need.
+
+    Class attributes:
+        kind: the SESSION_FORMAT.md name.
+        acts_on: "body" (the truth FEM carries it) or "input" (the probe input).
+        scales_with_youngs: scaling E leaves the model's displacements unchanged and
+            scales its forces (its stiffnesses are ratios of E, or it acts on the input);
+            gravity (a fixed body force) and a foundation (a fixed stiffness in Pa/m) set
+            a scale for E of their own.
+        size_unit: unit of :meth:`size`.
+        reference_size: a size that our lab's data show clearly: signatures for
+            detectability are simulated at it and scaled.
+        max_size: the largest size a phantom experiment plausibly has; a kind that
+            would not be claimed even at this size "cannot be told" from the data.
+    """
+
+    kind: ClassVar[str] = ""
+    acts_on: ClassVar[str] = "body"
+    scales_with_youngs: ClassVar[bool] = True
+    size_unit: ClassVar[str] = ""
+    reference_size: ClassVar[float] = 1.0
+    max_size: ClassVar[float] = math.inf
+
+    def configure(self, builder: "ModelBuilder") -> None:
+        """Change the model under construction (default: nothing)."""
+
+    def transform_probe(self, path: "ProbePath", radius: float) -> tuple["ProbePath", float]:
+        """Map the calibrated probe input to the true one (default: unchanged)."""
+        return path, radius
+
+    def to_dict(self) -> dict:
+        """``{"kind": ..., **parameters}`` as in truth.json / diagnosis.json (lists, not arrays)."""
+        out = {"kind": self.kind}
+        for k, v in asdict(self).items():
+            out[k] = np.asarray(v).tolist() if isinstance(v, (tuple, list, np.ndarray)) else float(v)
+        return out
+
+    # ---- declarations read by the diagnosis, the planner and the lab ---------------
+    def size(self, ctx: PhantomContext) -> float:
+        """The kind's size measure (SESSION_FORMAT.md ``detectability`` table), >= 0."""
+        raise NotImplementedError
+
+    @classmethod
+    def strength(cls, size: float) -> float:
+        """The coordinate in which the data change about linearly with the size, zero
+        without the effect (the size itself, except for a stiffness ratio)."""
+        return float(size)
+
+    @classmethod
+    def size_at(cls, strength: float) -> float:
+        """Inverse of :meth:`strength`."""
+        return float(strength)
+
+    @classmethod
+    def assumptions(cls, ctx: PhantomContext) -> tuple[dict, ...]:
+        """The parameters a detectability statement assumes besides the size: one dict per
+        placement or direction considered (see ``assume``)."""
+        return ({},)
+
+    assume: ClassVar[str] = "least_detectable"
+    """Of several :meth:`assumptions`, the detectability statement takes the
+    "least_detectable" (a direction: the size that shows in every direction) or the
+    "most_detectable" (a placement: "best-placed under the palpated region")."""
+
+    @classmethod
+    def sized(cls, size: float, ctx: PhantomContext, **assumed) -> "Effect":
+        """An effect of this kind of ``size`` with the ``assumed`` parameters."""
+        raise NotImplementedError
+
+    @classmethod
+    def fit_space(cls, ctx: PhantomContext) -> FitSpace:
+        """The kind as a fit problem on the phantom of ``ctx``."""
+        raise NotImplementedError
+
+    @classmethod
+    def example(cls, ctx: PhantomContext, rng: np.random.Generator) -> "Effect":
+        """A detectable instance of the kind, for the virtual lab's scenarios."""
+        raise NotImplementedError
+
+
+def _vec3(name: str, value) -> tuple[float, float, float]:
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise SimulationError(f"{name} must be 3 finite numbers, got {value!r}")
+    return tuple(float(v) for v in arr)
+
+
+def _positive(name: str, value) -> float:
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise SimulationError(f"{name} must be positive, got {value!r}")
+    return v
+
+
+def _unit(v) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    n = float(np.linalg.norm(v))
+    if not n > 0:
+        raise SimulationError(f"a direction must be non-zero, got {v!r}")
+    return v / n
+
+
+_AXES = ({"direction": [1.0, 0.0, 0.0]}, {"direction": [0.0, 1.0, 0.0]}, {"direction": [0.0, 0.0, 1.0]})
+
+
