@@ -9,8 +9,9 @@ Public surface::
 
     path = generate_session(out, preset="small", seed=0, effects=[{"kind": "gravity"}])
 
-Modules: :mod:`core.lab.probing` (probe trajectories), :mod:`core.lab.camera` (depth
-camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json),
+Modules: :mod:`core.lab.probing` (probe trajectories, random or given), :mod:`core.lab.camera`
+(depth camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json),
+:mod:`core.lab.variation` (a randomised lab: truth and sensors drawn per seed),
 :mod:`core.lab.scenarios` (a hidden-effect session design per effect kind).
 """
 
@@ -29,8 +30,9 @@ from core.lab.generate import (
     complete_effects,
     generate_session,
 )
-from core.lab.probing import Poke, ProbePlan, ProbeTrajectory, ProbingConfig, plan_sequence
+from core.lab.probing import Poke, ProbePlan, ProbeTrajectory, ProbingConfig, plan_from_path, plan_sequence
 from core.lab.scenarios import SCENARIO_KINDS, hidden_effects, scenario
+from core.lab.variation import VARIATION_LAWS, LabVariation, apply_variation
 
 __all__ = [
     "SCENARIO_KINDS",
@@ -57,4 +59,8 @@ __all__ = [
     "ProbeTrajectory",
     "ProbingConfig",
     "plan_sequence",
+    "plan_from_path",
+    "VARIATION_LAWS",
+    "LabVariation",
+    "apply_variation",
 ]

@@ -5,8 +5,11 @@ and the sides of a 68.7 x 39.3 x 35.8 mm, 104.01 g gel block; an SR300-like dept
 records it at 30 Hz while the robot reports kinematics at ~1 kHz; a calibration touches
 the four top corners. The phantom's deformation comes from a truth simulation that is
 more faithful than the replay model (finer mesh, stable Neo-Hookean material, Smith et
-al. 2018) plus any effect of ``SESSION_FORMAT.md`` that is switched on. The session is
-streamed to disk through :class:`core.io.SessionWriter`, with ``truth.json``.
+al. 2018) plus any effect of ``SESSION_FORMAT.md`` that is switched on; with a
+:class:`core.lab.variation.LabVariation` (the ``field`` preset) the truth's law, modulus,
+mesh, contact, damping and noise levels are drawn per seed. The probe follows random
+pokes, or given paths (``paths=``). The session is streamed to disk through
+:class:`core.io.SessionWriter`, with ``truth.json``.
 
 Frames: *phantom* (box ``[0, size]``, z up), *robot* (kinematics, corners, forces;
 ``T_phantom_robot`` maps robot points into the phantom frame) and *camera* (clouds;
@@ -19,7 +22,7 @@ import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -38,7 +41,8 @@ from core.lab.camera import (
     table_mesh,
     table_ring_mask,
 )
-from core.lab.probing import ProbePlan, ProbingConfig, plan_sequence
+from core.lab.probing import ProbePlan, ProbingConfig, plan_from_path, plan_sequence
+from core.lab.variation import LabVariation, apply_variation
 
 __all__ = [
     "GENERATOR_NAME",
@@ -111,7 +115,13 @@ class LabConfig:
     poisson_ratio: float = 0.44
     """Poisson's ratio of the truth material."""
     law: str = "stable_neo_hookean"
-    """Material law of the truth simulation (Smith et al. 2018)."""
+    """Material law of the truth simulation: "stable_neo_hookean" (Smith et al. 2018) or
+    "stable_yeoh" (plus Yeoh-type strain stiffening, see ``core.simulation.Material``)."""
+    stiffening: float = 0.0
+    """Yeoh coefficient of the "stable_yeoh" law (dimensionless, >= 0; ignored otherwise)."""
+    contact_stiffness_per_modulus: float = 2e5
+    """Contact penalty of the truth simulation per unit area and per pascal of E, 1/m
+    (``core.simulation.SimulationConfig.contact_stiffness_per_modulus``; 2e5 as the replay)."""
     rayleigh_mass: float = 0.1
     """Rayleigh damping on the mass matrix, 1/s (paper: 0.1)."""
     rayleigh_stiffness: float = 0.1
@@ -141,6 +151,12 @@ class LabConfig:
     workers: int = 1
     """Extra processes that run truth simulations ahead while the main process renders
     (0: everything in the main process)."""
+    variation: LabVariation | None = None
+    """If set, the truth's law, stiffening, E, nu, mesh, contact stiffness and damping
+    and the depth- and force-noise levels are drawn per seed from these ranges (from a
+    generator of their own, so poses, plans and noise streams stay those of the seed) and
+    recorded in truth.json under "lab_variation"; they override the fields above
+    (``youngs_modulus_range`` included). None: the fields above, as they are."""
 
 
 def _roles(n: int, n_val: int = 1, n_test: int = 2) -> tuple[str, ...]:
@@ -181,6 +197,8 @@ PRESETS: dict[str, LabConfig] = {
         dt=0.005,
     ),
 }
+# a lab that is not our replay model: the small preset's sizes, its truth drawn per seed
+PRESETS["field"] = replace(PRESETS["small"], variation=LabVariation())
 PRESET_NOTES: dict[str, str] = {
     "small": "tests: 4 x 10 s (validation, test, 2 x train); camera 15 Hz at 320 x 240; kinematics "
              "200 Hz instead of the dVRK's 1 kHz to keep files small; truth 25 x 9 x 9 (the refined grid "
@@ -189,6 +207,11 @@ PRESET_NOTES: dict[str, str] = {
     "demo": "README main command: 6 x 20 s (validation, 2 x test, 3 x train); camera 15 Hz at "
             "480 x 360; kinematics 500 Hz; truth dt 5 ms; ~6.4k raw points per frame (~4.5k on the "
             "phantom); ~1 min, ~150 MB",
+    "field": "a lab that is not our replay model: the small preset's sizes (4 x 10 s; validation, test, "
+             "2 x train; 320 x 240 at 15 Hz, kinematics 200 Hz) with the truth drawn per seed "
+             "(LabVariation: stable neo-Hookean or strain-stiffening Yeoh law, E 3-15 kPa, nu "
+             "0.42-0.48, 19 x 7 x 7 to 31 x 11 x 11 mesh, contact stiffness, damping, depth and "
+             "force noise), random top and side palpation; ~15-40 s depending on the mesh drawn, ~25 MB",
     "paper": "Wu et al. 2020 scale: 12 sequences (2 min validation, 2 x 1 min test, 9 x 1 min train), "
              "camera 30 Hz at 1280 x 960 (~45k phantom points per frame, as the paper's subsampled "
              "clouds; 31k-57k depending on the seed's camera distance), kinematics 1 kHz, "
@@ -274,6 +297,8 @@ class _SimJob:
     youngs_modulus: float
     poisson_ratio: float
     law: str
+    stiffening: float
+    contact_stiffness_per_modulus: float
     dt: float
     newton_iterations: int
     rayleigh_mass: float
@@ -292,10 +317,12 @@ def _build_model(job: _SimJob):
     return build_model(
         mesh,
         mass=PHANTOM_MASS,
-        material=Material(youngs_modulus=job.youngs_modulus, poisson_ratio=job.poisson_ratio, law=job.law),
+        material=Material(youngs_modulus=job.youngs_modulus, poisson_ratio=job.poisson_ratio, law=job.law,
+                          stiffening=job.stiffening),
         config=SimulationConfig(dt=job.dt, rayleigh_mass=job.rayleigh_mass,
                                 rayleigh_stiffness=job.rayleigh_stiffness,
-                                newton_iterations=job.newton_iterations),
+                                newton_iterations=job.newton_iterations,
+                                contact_stiffness_per_modulus=job.contact_stiffness_per_modulus),
         effects=[effect_from_dict(d) for d in job.physical_effects],
     )
 
@@ -308,7 +335,8 @@ def _run_sim(job: _SimJob, callback: ProgressCallback | None = None):
     status, message, wall time)."""
     from core.simulation import ProbePath, simulate
 
-    key = (job.grid, job.youngs_modulus, job.poisson_ratio, job.law, job.dt, job.newton_iterations,
+    key = (job.grid, job.youngs_modulus, job.poisson_ratio, job.law, job.stiffening,
+           job.contact_stiffness_per_modulus, job.dt, job.newton_iterations,
            job.rayleigh_mass, job.rayleigh_stiffness, repr(job.physical_effects))
     model = _MODEL_CACHE.get(key)
     if model is None:
@@ -345,6 +373,25 @@ class _Sequence:
     rng: np.random.Generator
 
 
+def _material_truth(cfg: LabConfig, size: np.ndarray) -> dict:
+    """truth.json "material": law, citation, density and damping (and the stiffening of
+    the "stable_yeoh" law)."""
+    citation = {
+        "stable_neo_hookean": "stable Neo-Hookean, Smith, de Goes & Kim 2018",
+        "stable_yeoh": "stable Neo-Hookean, Smith, de Goes & Kim 2018, plus a Yeoh-type stiffening term "
+                       "stiffening * mu / 2 * (I_C - 3 - 2 (J - 1))^2, Yeoh 1993",
+    }.get(cfg.law, cfg.law)
+    out = {"law": cfg.law, "citation": citation}
+    if cfg.law == "stable_yeoh":
+        out["stiffening"] = float(cfg.stiffening)
+    out.update({
+        "density": PHANTOM_MASS / float(np.prod(size)),
+        "rayleigh_mass": cfg.rayleigh_mass,
+        "rayleigh_stiffness": cfg.rayleigh_stiffness,
+    })
+    return out
+
+
 def _frame_times(rng, duration: float, rate: float, jitter: float) -> np.ndarray:
     period = 1.0 / rate
     n = int(np.floor((duration - period) * rate)) + 1
@@ -363,14 +410,18 @@ def generate_session(
     with_force: bool = False,
     overwrite: bool = False,
     callback: ProgressCallback | None = None,
+    paths: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> Path:
     """Generate a synthetic session folder (``tissue-session/1`` plus ``truth.json``).
 
     Args:
         out: the session folder to create.
-        preset: a name of :data:`PRESETS` ("small", "demo", "paper") or a :class:`LabConfig`.
-        seed: all randomness comes from ``numpy.random.default_rng(seed)``; the same seed
-            and arguments give byte-identical files.
+        preset: a name of :data:`PRESETS` ("small", "demo", "field", "paper") or a
+            :class:`LabConfig`.
+        seed: all randomness comes from ``numpy.random.default_rng(seed)`` (and, for a
+            config with ``variation``, the lab's draws from ``default_rng([seed, 7])``, so
+            that poses, plans and noise streams do not depend on it); the same seed and
+            arguments give byte-identical files.
         effects: effect dicts of ``SESSION_FORMAT.md`` (``{"kind": "gravity", "g": [...]}``);
             missing parameters take the defaults of :mod:`core.simulation.effects`.
             Positions are in the phantom frame.
@@ -379,12 +430,22 @@ def generate_session(
             kinematic times, plus ``force_noise``.
         overwrite: replace an existing session at ``out``.
         callback: ``callback(fraction in [0, 1], message)`` for progress.
+        paths: optional given probe paths, one ``(t (K,) s, centres (K, 3) m)`` per
+            sequence (as many as ``cfg.sequence_roles``): the true sphere-centre path in
+            the phantom frame, linearly interpolated, t strictly increasing from t[0] >= 0
+            (held at the first point before). Each sequence then follows its path instead
+            of a random plan and lasts its path's last time (overriding
+            ``cfg.sequence_durations``); it has no pokes (``"pokes": []`` in truth.json)
+            and its tool's shaft leans 25 degrees from vertical away from the camera,
+            unrolled (:func:`core.lab.probing.plan_from_path`). Camera, noise, calibration,
+            effects (input effects too) and force columns are as for random plans.
 
     Returns:
         the session folder.
 
     Raises:
-        LabError: unknown preset, bad effect, or a truth simulation that diverged.
+        LabError: unknown preset, bad effect, a bad path (count, shapes, times, or
+            deeper than 15 mm into the phantom), or a truth simulation that diverged.
         core.io.SessionExistsError: ``out`` exists and ``overwrite`` is false.
     """
     from core.io import (
@@ -407,6 +468,23 @@ def generate_session(
     if len(cfg.sequence_durations) != len(cfg.sequence_roles) or not cfg.sequence_durations:
         raise LabError(f"sequence_durations ({len(cfg.sequence_durations)}) and sequence_roles "
                        f"({len(cfg.sequence_roles)}) must have the same non-zero length")
+    if paths is not None:
+        paths = list(paths)
+        if len(paths) != len(cfg.sequence_roles):
+            raise LabError(f"got {len(paths)} probe paths for {len(cfg.sequence_roles)} sequences "
+                           f"(roles {cfg.sequence_roles}); give one (t, centres) per sequence")
+        durations = []
+        for i, path in enumerate(paths):
+            if not isinstance(path, (tuple, list)) or len(path) != 2:
+                raise LabError(f"probe path {i} must be a pair (t (K,) s, centres (K, 3) m), got {type(path).__name__}")
+            try:
+                t_i = np.asarray(path[0], dtype=np.float64)
+            except (TypeError, ValueError) as exc:
+                raise LabError(f"probe path {i}: times must be numbers, {exc}") from exc
+            if t_i.ndim != 1 or t_i.size < 2:
+                raise LabError(f"probe path {i}: times must be (K,) with K >= 2, got shape {t_i.shape}")
+            durations.append(float(t_i[-1]))
+        cfg = replace(cfg, sequence_durations=tuple(durations))
     report = callback or (lambda fraction, message: None)
     t_wall = time.perf_counter()
     full_effects = complete_effects(effects)
@@ -425,6 +503,12 @@ def generate_session(
         lo, hi = cfg.youngs_modulus_range
         E = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
     else:
+        E = float(cfg.youngs_modulus)
+    drawn = None
+    if cfg.variation is not None:
+        # a generator of its own: the main stream (poses, plans, noise) stays the seed's
+        drawn = cfg.variation.draw(np.random.default_rng([int(seed), 7]))
+        cfg = apply_variation(cfg, drawn)
         E = float(cfg.youngs_modulus)
     T_phantom_robot = _random_robot_pose(rng, cfg.robot_distance_range)
     T_robot_phantom = np.linalg.inv(T_phantom_robot)
@@ -447,10 +531,23 @@ def generate_session(
     for i, (dur, role) in enumerate(zip(cfg.sequence_durations, cfg.sequence_roles)):
         srng = seq_rngs[i]
         # the instrument comes from the side opposite the camera, as in the paper's Fig. 2
-        azimuth = cam_azimuth + np.pi + srng.uniform(-np.pi / 3, np.pi / 3)
-        plan = plan_sequence(srng, size=size, radius=r_true, duration=float(dur), config=cfg.probing,
-                             tool_azimuth=azimuth)
+        if paths is None:
+            azimuth = cam_azimuth + np.pi + srng.uniform(-np.pi / 3, np.pi / 3)
+            try:
+                plan = plan_sequence(srng, size=size, radius=r_true, duration=float(dur), config=cfg.probing,
+                                     tool_azimuth=azimuth)
+            except ValueError as exc:
+                raise LabError(f"sequence seq{i:02d} ({role}, {dur} s): {exc}") from exc
+        else:
+            try:
+                plan = plan_from_path(paths[i][0], paths[i][1], size=size, radius=r_true,
+                                      tool_azimuth=cam_azimuth + np.pi)
+            except ValueError as exc:
+                raise LabError(f"probe path {i} ({role} sequence seq{i:02d}): {exc}") from exc
         ft = _frame_times(srng, float(dur), cfg.camera_rate_hz, cfg.frame_jitter)
+        if ft.size == 0:
+            raise LabError(f"sequence seq{i:02d} lasts {dur} s: too short for one camera frame at "
+                           f"{cfg.camera_rate_hz} Hz")
         kt = np.arange(int(np.floor(dur * cfg.kinematics_rate_hz)) + 1) / cfg.kinematics_rate_hz
         sequences.append(_Sequence(f"seq{i:02d}", role, float(dur), plan, ft, kt, srng))
 
@@ -460,7 +557,8 @@ def generate_session(
         else:
             pt = np.linspace(0.0, seq.duration, int(np.ceil(seq.duration * 200)) + 1)
             pc, ot = seq.plan.trajectory(pt), seq.frame_times
-        return _SimJob(tuple(cfg.grid), E, cfg.poisson_ratio, cfg.law, cfg.dt, cfg.newton_iterations,
+        return _SimJob(tuple(cfg.grid), E, cfg.poisson_ratio, cfg.law, float(cfg.stiffening),
+                       float(cfg.contact_stiffness_per_modulus), cfg.dt, cfg.newton_iterations,
                        cfg.rayleigh_mass, cfg.rayleigh_stiffness, physical, pt, pc, r_true, ot)
 
     from core.simulation import box_mesh
@@ -596,14 +694,7 @@ def generate_session(
                 "T_phantom_camera": T_phantom_camera.tolist(),
                 "youngs_modulus": E,
                 "poisson_ratio": float(cfg.poisson_ratio),
-                "material": {
-                    "law": cfg.law,
-                    "citation": "stable Neo-Hookean, Smith, de Goes & Kim 2018" if cfg.law == "stable_neo_hookean"
-                    else cfg.law,
-                    "density": PHANTOM_MASS / float(np.prod(size)),
-                    "rayleigh_mass": cfg.rayleigh_mass,
-                    "rayleigh_stiffness": cfg.rayleigh_stiffness,
-                },
+                "material": _material_truth(cfg, size),
                 "effects": full_effects,
                 "probe": {"radius_nominal": r_nominal, "radius_true": r_true,
                           "shaft_radius": Instrument.shaft_radius, "shaft_length": Instrument.shaft_length},
@@ -618,6 +709,12 @@ def generate_session(
                 "sim": {"dt": cfg.dt, "integrator": "implicit_euler", "newton_iterations": cfg.newton_iterations},
                 "sequences": seq_meta,
             }
+            # keys added only when used, so that sessions of older configs stay byte-identical
+            if cfg.contact_stiffness_per_modulus != 2e5:
+                truth["sim"]["contact_stiffness_per_modulus"] = float(cfg.contact_stiffness_per_modulus)
+            if drawn is not None:
+                truth["lab_variation"] = {**drawn, "depth_noise_sigma": float(cfg.depth_noise.sigma),
+                                          "ranges": cfg.variation.to_dict()}
             writer.write_truth(truth)
             path = writer.finish()
     finally:

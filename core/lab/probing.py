@@ -19,6 +19,7 @@ import numpy as np
 
 __all__ = [
     "FACE_NORMALS",
+    "INTERPOLATIONS",
     "Poke",
     "ProbeTrajectory",
     "ProbingConfig",
@@ -26,7 +27,17 @@ __all__ = [
     "plan_sequence",
     "tool_rotation",
     "penetration_depth",
+    "plan_from_path",
+    "DEFAULT_PATH_TILT_DEG",
+    "MAX_PATH_PENETRATION",
 ]
+
+DEFAULT_PATH_TILT_DEG = 25.0
+"""Shaft tilt from vertical of a given path's tool (:func:`plan_from_path`), degrees: the
+middle of :attr:`ProbingConfig.tilt_range_deg`."""
+MAX_PATH_PENETRATION = 0.015
+"""Deepest a given path's sphere may reach into the rest box, m (:func:`plan_from_path`);
+the lab's planned pokes reach at most 10 mm."""
 
 #: Outward unit normals of the faces a probe may press, phantom frame.
 FACE_NORMALS: dict[str, np.ndarray] = {
@@ -137,19 +148,31 @@ def _min_jerk(s: np.ndarray) -> np.ndarray:
     return s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
+INTERPOLATIONS = ("min_jerk", "linear")
+"""How :class:`ProbeTrajectory` blends between knots."""
+
+
 @dataclass(frozen=True)
 class ProbeTrajectory:
-    """Sphere-centre path through knots, minimum-jerk between consecutive knots.
+    """Sphere-centre path through knots, minimum-jerk (or linear) between consecutive knots.
 
     Attributes:
         knot_t: (M,) strictly increasing knot times, s; the path starts at knot_t[0].
         knot_p: (M, 3) sphere centres at the knots, m, phantom frame.
+        interpolation: "min_jerk" (default; velocity zero at every knot, for planned
+            pokes whose knots are stops) or "linear" (for densely sampled given paths,
+            where stopping at every sample would make the motion jerky).
 
     Outside ``[knot_t[0], knot_t[-1]]`` the path is held at its end points.
+
+    Raises:
+        ValueError: knot_p not (M, 3), knot times empty or not strictly increasing,
+            non-finite values, or an unknown interpolation.
     """
 
     knot_t: np.ndarray
     knot_p: np.ndarray
+    interpolation: str = "min_jerk"
 
     def __post_init__(self):
         t = np.asarray(self.knot_t, dtype=np.float64).reshape(-1)
@@ -158,6 +181,10 @@ class ProbeTrajectory:
             raise ValueError(f"knot_p must be ({t.size}, 3), got {p.shape}")
         if t.size < 1 or (t.size > 1 and np.any(np.diff(t) <= 0)):
             raise ValueError("knot_t must be non-empty and strictly increasing")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(p))):
+            raise ValueError("knot_t and knot_p must be finite")
+        if self.interpolation not in INTERPOLATIONS:
+            raise ValueError(f"interpolation must be one of {INTERPOLATIONS}, got {self.interpolation!r}")
         object.__setattr__(self, "knot_t", t)
         object.__setattr__(self, "knot_p", p)
 
@@ -174,7 +201,7 @@ class ProbeTrajectory:
             return np.repeat(kp, t.size, axis=0)
         i = np.clip(np.searchsorted(kt, t, side="right") - 1, 0, kt.size - 2)
         s = np.clip((t - kt[i]) / (kt[i + 1] - kt[i]), 0.0, 1.0)
-        w = _min_jerk(s)[:, None]
+        w = (_min_jerk(s) if self.interpolation == "min_jerk" else s)[:, None]
         return kp[i] * (1.0 - w) + kp[i + 1] * w
 
 
@@ -400,3 +427,62 @@ def plan_sequence(
         b.wait(duration - b.now)
     traj = ProbeTrajectory(np.asarray(b.t), np.asarray(b.p))
     return ProbePlan(traj, tuple(pokes), R, float(duration))
+
+
+def plan_from_path(
+    t,
+    centres,
+    *,
+    size,
+    radius: float,
+    tool_azimuth: float,
+    tilt_deg: float = DEFAULT_PATH_TILT_DEG,
+    max_penetration: float = MAX_PATH_PENETRATION,
+) -> ProbePlan:
+    """A plan that follows a given sphere-centre path ("the virtual lab can execute a plan").
+
+    Args:
+        t: (K,) strictly increasing times, s, K >= 2, t[0] >= 0; the sequence lasts t[-1]
+            (the path is held at its first point before t[0]).
+        centres: (K, 3) true sphere centres, m, phantom frame; linearly interpolated.
+        size: (3,) box size, m.
+        radius: the probe's true radius, m.
+        tool_azimuth: direction (rad, from +x towards +y) the shaft leans towards (the lab
+            passes "away from the camera", as for random plans).
+        tilt_deg: shaft angle from vertical, degrees; the tool is not rolled.
+        max_penetration: the deepest the sphere may reach into the rest box, m, checked
+            with :func:`penetration_depth` at the given points and on the path sampled at
+            1 ms (a straight segment can cut a corner deeper than its end points).
+
+    Returns:
+        a :class:`ProbePlan` with no pokes.
+
+    Raises:
+        ValueError: wrong shapes, non-finite values, fewer than 2 points, times not
+            strictly increasing or negative, or a path that enters deeper than
+            ``max_penetration``.
+    """
+    tt = np.asarray(t, dtype=np.float64)
+    pc = np.asarray(centres, dtype=np.float64)
+    if tt.ndim != 1 or tt.size < 2:
+        raise ValueError(f"path times must be (K,) with K >= 2, got shape {tt.shape}")
+    if pc.shape != (tt.size, 3):
+        raise ValueError(f"path centres must be ({tt.size}, 3) to match the times, got {pc.shape}")
+    if not (np.all(np.isfinite(tt)) and np.all(np.isfinite(pc))):
+        raise ValueError("path times and centres must be finite")
+    bad = np.flatnonzero(np.diff(tt) <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"path times must be strictly increasing; t[{i}] = {tt[i]} s, t[{i + 1}] = {tt[i + 1]} s")
+    if tt[0] < 0:
+        raise ValueError(f"path times must start at t >= 0, got {tt[0]} s")
+    traj = ProbeTrajectory(tt, pc, interpolation="linear")
+    dense = traj(np.linspace(tt[0], tt[-1], max(int(np.ceil((tt[-1] - tt[0]) * 1000)) + 1, 2)))
+    depth = max(float(penetration_depth(pc, size, radius).max()), float(penetration_depth(dense, size, radius).max()))
+    if depth > max_penetration:
+        i = int(np.argmax(penetration_depth(pc, size, radius)))
+        raise ValueError(f"the path enters the phantom {depth * 1e3:.1f} mm deep (sphere radius {radius * 1e3:.1f} mm; "
+                         f"deepest given point {i} at t = {tt[i]:.3f} s, {pc[i].tolist()} m); at most "
+                         f"{max_penetration * 1e3:.1f} mm allowed")
+    R = tool_rotation(np.deg2rad(tilt_deg), float(tool_azimuth), 0.0)
+    return ProbePlan(traj, (), R, float(tt[-1]))

@@ -22,48 +22,35 @@ from dataclasses import replace
 import numpy as np
 
 from core.lab.generate import PHANTOM_SIZE, PRESETS, LabConfig
+from core.simulation.effects import EFFECT_KINDS, PhantomContext
 
 __all__ = ["SCENARIO_KINDS", "hidden_effects", "scenario"]
 
-SCENARIO_KINDS = ("gravity", "inclusion", "viscoelasticity", "friction", "base_compliance", "probe_radius",
-                  "time_offset", "kinematic_offset", "none")
+SCENARIO_KINDS = (*EFFECT_KINDS, "none")
 """Every effect kind of SESSION_FORMAT.md, and "none" (no effect)."""
 
 
-def _inclusion_centre(seed: int) -> np.ndarray:
-    """(3,) m: a seed-varied centre over the middle of the top, its sphere's top 2 mm under it."""
-    rng = np.random.default_rng(1000 + seed)
-    sx, sy, sz = PHANTOM_SIZE
-    return np.array([rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.011])
-
-
 def hidden_effects(kind: str, seed: int) -> list[dict]:
-    """The effect dicts hidden for ``kind`` (SI, phantom frame; empty for "none").
+    """The effect dicts hidden for ``kind`` (SI, phantom frame; empty for "none"): the
+    kind's own example (:meth:`core.simulation.effects.Effect.example`), drawn with
+    ``numpy.random.default_rng(1000 + seed)``.
 
     Magnitudes: standard gravity; a 9 mm inclusion 6x stiffer than the bulk, 2 mm under
-    the top; a Maxwell arm twice as stiff as the elastic solid relaxing in 0.5 s; Coulomb
-    friction 0.8 (wet gel on steel is 0.3-1); a foundation of 5e4 Pa/m (a 5 kPa gel on
-    a soft pad); a 7.5 mm probe recorded as 5 mm; a 0.15 s clock offset (a few camera
-    frames); a robot calibration error of (1.5, -1, -1.5) mm.
+    the top, its centre varied with the seed; a Maxwell arm twice as stiff as the elastic
+    solid relaxing in 0.5 s; Coulomb friction 0.8 (wet gel on steel is 0.3-1); a
+    foundation of 5e4 Pa/m (a 5 kPa gel on a soft pad); a 7.5 mm probe recorded as 5 mm;
+    a 0.15 s clock offset (a few camera frames); a robot calibration error of
+    (1.5, -1, -1.5) mm.
 
     Raises:
         ValueError: unknown kind.
     """
-    table = {
-        "gravity": {"g": [0.0, 0.0, -9.81]},
-        "inclusion": {"center": _inclusion_centre(seed).tolist(), "radius": 0.009, "stiffness_ratio": 6.0},
-        "viscoelasticity": {"relaxation_time": 0.5, "stiffness_ratio": 2.0},
-        "friction": {"mu": 0.8},
-        "base_compliance": {"stiffness": 5e4},
-        "probe_radius": {"radius": 0.0075},
-        "time_offset": {"offset": 0.15},
-        "kinematic_offset": {"offset": [0.0015, -0.001, -0.0015]},
-    }
     if kind == "none":
         return []
-    if kind not in table:
+    if kind not in EFFECT_KINDS:
         raise ValueError(f"unknown scenario kind {kind!r}; expected one of {SCENARIO_KINDS}")
-    return [{"kind": kind, **table[kind]}]
+    ctx = PhantomContext(np.asarray(PHANTOM_SIZE), 0.005)
+    return [EFFECT_KINDS[kind].example(ctx, np.random.default_rng(1000 + seed)).to_dict()]
 
 
 def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConfig = "small") -> tuple[LabConfig, list[dict]]:
