@@ -55,14 +55,48 @@ def _parse_effects(text: str | None) -> list[dict]:
     return value
 
 
+def _preset_names() -> tuple[str, ...]:
+    from core.lab.generate import PRESETS
+
+    return tuple(PRESETS)
+
+
+def _plan_path(plan: str):
+    """(t, centres) of a plan's probe path in the phantom frame (plan.json ``path_phantom``)."""
+    import json
+
+    import numpy as np
+
+    p = Path(plan)
+    p = p / "plan.json" if p.is_dir() else p
+    try:
+        data = json.loads(p.read_text())
+        t = np.asarray(data["path_phantom"]["t"], dtype=np.float64)
+        c = np.asarray(data["path_phantom"]["centres"], dtype=np.float64)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise TissueTwinError(f"{p}: not a plan.json with a path_phantom ({exc})") from exc
+    return t, c
+
+
 def cmd_generate(args) -> int:
+    from dataclasses import replace
+
     from core.lab import generate_session
+    from core.lab.generate import PRESETS
 
     effects = _parse_effects(args.effects)
+    preset = PRESETS[args.preset]
+    if args.duration is not None:
+        if not args.duration > 0:
+            raise TissueTwinError(f"--duration must be positive, got {args.duration}")
+        preset = replace(preset, sequence_durations=(float(args.duration),) * len(preset.sequence_roles))
+    paths = None
+    if args.plan:
+        paths = [_plan_path(args.plan)] * len(preset.sequence_roles)
     with _progress(f"generating {args.preset} session") as cb:
         path = generate_session(
-            args.out, preset=args.preset, seed=args.seed, effects=effects, with_force=args.force,
-            overwrite=args.overwrite, callback=cb,
+            args.out, preset=preset, seed=args.seed, effects=effects, with_force=args.force,
+            overwrite=args.overwrite, callback=cb, paths=paths,
         )
     print(f"session written to {path}")
     return 0
@@ -256,7 +290,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("generate", help="write a synthetic session with the virtual lab")
-    p.add_argument("--preset", choices=("small", "demo", "paper"), default="small")
+    p.add_argument("--preset", choices=_preset_names(), default="small",
+                   help="lab preset (field: randomised physics and palpation, a lab that is not our replay)")
+    p.add_argument("--duration", type=float, default=None, help="length of every sequence, s (default: the preset's)")
+    p.add_argument("--plan", default=None, metavar="PLAN",
+                   help="record a palpation plan (tissuetwin plan's folder or plan.json): every sequence follows its path")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--effects", default=None, help="JSON list of effects, e.g. '[{\"kind\": \"gravity\", \"g\": [0, 0, -9.81]}]'")
     p.add_argument("--force", action="store_true", help="write probe force columns fx, fy, fz")

@@ -34,6 +34,9 @@ def cmd_diagnose(args) -> int:
                       + (f"; the claimed causes account for {100 * lc['claimed_share']:.0f} %" if lc["claimed_share"] is not None else ""))
     for group in diag.confounded:
         console.print(f"confounded, not picked: {' / '.join(group)}")
+    for kind, d in (diag.detectability or {}).items():
+        size = "no size would show" if d.min_size is None else f"min size {d.min_size:.3g} {d.unit}".rstrip()
+        console.print(f"  {kind:<17} {d.answer.replace('_', ' '):<11} ({size})")
     lo, hi = diag.gain_interval
     console.print(
         f"test error: base {diag.baseline_test_error * 1e3:.3f} mm, extended {diag.extended_test_error * 1e3:.3f} mm "
@@ -46,6 +49,55 @@ def cmd_diagnose(args) -> int:
     else:
         console.print(f"probe force: {diag.force_note}")
     print(f"{diag.simulations} simulations in {diag.timings['total']:.0f} s; wrote {out}/diagnosis.json and {out}/report.md")
+    return 0
+
+
+def cmd_plan(args) -> int:
+    """``tissuetwin plan``: the palpation that would make undecidable kinds decidable."""
+    import json
+
+    from rich.console import Console
+
+    from app.cli import _progress
+    from core.diagnosis import DiagnosisConfig, diagnose_prepared
+    from core.diagnosis.planner import PlanLimits, plan_experiment, write_plan
+    from core.errors import TissueTwinError
+    from core.identification import executor
+    from core.simulation.replay import ReplayConfig, prepare_session
+
+    config = DiagnosisConfig(use_force=False if args.no_force else None)
+    limits = PlanLimits(max_depth=args.max_depth, speed=args.speed, duration=args.duration)
+    with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"planning {Path(args.session).name}") as cb:
+        prepared = prepare_session(args.session, ReplayConfig(grid=config.grid), callback=lambda f, m: cb(0.05 * f, m))
+        if args.diagnosis:
+            path = Path(args.diagnosis)
+            path = path / "diagnosis.json" if path.is_dir() else path
+            try:
+                data = json.loads(path.read_text())
+                detect = data["detectability"]
+                for k, a in data.get("answers", {}).items():
+                    if k in detect:
+                        detect[k]["answer"] = a
+                fixed = list(data.get("extended", {}).get("effects", []))
+                E = data.get("youngs_modulus", {}).get("replay_grid_value_used") or config.youngs_modulus
+            except (OSError, ValueError, KeyError) as exc:
+                raise TissueTwinError(f"{path}: not a diagnosis.json with detectability ({exc})") from exc
+        else:
+            diag = diagnose_prepared(prepared, config, executor=ex, callback=lambda f, m: cb(0.05 + 0.6 * f, m))
+            detect, fixed = diag.detectability, list(diag.extended_effects)
+            E = diag.youngs.get("replay_grid_value_used") or config.youngs_modulus
+        plan = plan_experiment(prepared, detect, config, fixed=fixed, youngs_modulus=E,
+                               kinds=args.kinds or None, limits=limits, executor=ex,
+                               callback=lambda f, m: cb(0.65 + 0.35 * f, m))
+    out = write_plan(plan, args.out)
+    console = Console()
+    console.print("[bold]plan[/bold] for " + (", ".join(f"{k} ({w})" for k, w in plan.targets.items()) or "a general protocol"))
+    for line in plan.description:
+        console.print("  " + line)
+    for k, v in plan.predicted.items():
+        now = plan.current.get(k)
+        console.print(f"  {k}: now {'cannot tell' if now is None else f'{now:.3g}'} -> {'cannot tell' if v is None else f'{v:.3g}'}")
+    print(f"wrote {out}/kinematics.csv, {out}/plan.json and {out}/plan.md")
     return 0
 
 
@@ -85,3 +137,19 @@ def register(sub) -> None:
                    help="a trained correction network (tissuetwin train): report how much of its correction each cause accounts for")
     _add_execution_options(p)
     p.set_defaults(func=cmd_diagnose)
+
+    from core.simulation.effects import EFFECT_KINDS
+
+    p = sub.add_parser("plan", help="the palpation protocol that would make the undetectable or confounded kinds decidable")
+    p.add_argument("session")
+    p.add_argument("--out", required=True)
+    p.add_argument("--diagnosis", metavar="DIAGNOSIS", help="a diagnosis folder or diagnosis.json of this session "
+                   "(default: diagnose it first)")
+    p.add_argument("--kinds", nargs="*", choices=sorted(EFFECT_KINDS), help="the kinds to make decidable "
+                   "(default: those that could not be told, were confounded, or show only above their reference size)")
+    p.add_argument("--max-depth", type=float, default=0.008, help="deepest press, m (default 0.008)")
+    p.add_argument("--speed", type=float, default=0.010, help="fastest probe speed in contact, m/s (default 0.010)")
+    p.add_argument("--duration", type=float, default=20.0, help="most seconds of probing (default 20)")
+    p.add_argument("--no-force", action="store_true", help="diagnose without the force columns")
+    _add_execution_options(p)
+    p.set_defaults(func=cmd_plan)

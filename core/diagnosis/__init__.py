@@ -10,11 +10,15 @@ from __future__ import annotations
 from pathlib import Path
 
 from core.diagnosis.candidates import KINDS, Candidate, candidates
-from core.diagnosis.engine import CauseReport, Diagnosis, DiagnosisConfig, diagnose_prepared
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.engine import diagnose_prepared
+from core.diagnosis.results import ANSWERS, CauseReport, Detectability, Diagnosis
 from core.diagnosis.fields import PHASES, FieldLayout, phase_labels
 from core.diagnosis.report import write_diagnosis
 
 __all__ = [
+    "ANSWERS",
+    "Detectability",
     "KINDS",
     "PHASES",
     "Candidate",

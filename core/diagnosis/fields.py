@@ -51,12 +51,21 @@ class FieldLayout:
         bins: (bx, by) number of bins along x and y.
         margin: bins start this far (m) from the faces' edges (as ``top_residuals``).
         side_rows: bins along z on each side face (0: top face only).
+        side_tolerance: a side face takes points within this distance (m) of its rest
+            plane. A side bulges by a fraction of a millimetre; a top dented near an edge
+            dips by several, and with a looser tolerance its points there were taken for
+            the side's (measured: -2.3 mm "side residuals" beside a deep top press on a
+            session of the replay's own model).
+        side_top_margin: side bins end this far (m) below the top face: a press near an
+            edge dents the top down to a few millimetres above the probe's depth.
     """
 
     size: tuple[float, float, float]
     bins: tuple[int, int] = (16, 8)
     margin: float = 0.004
     side_rows: int = 0
+    side_tolerance: float = 0.002
+    side_top_margin: float = 0.010
 
     @property
     def top_bins(self) -> int:
@@ -98,7 +107,9 @@ class FieldLayout:
         u, v = [a for a in (0, 1, 2) if a != axis]
         nu, nv = self._face_shape(face)
         m = self.margin
-        return u, v, np.linspace(m, self.size[u] - m, nu + 1), np.linspace(m, self.size[v] - m, nv + 1)
+        # side faces: their v axis is z, kept clear of the top's edge by ``side_top_margin``
+        top = self.side_top_margin if face != "top" else m
+        return u, v, np.linspace(m, self.size[u] - m, nu + 1), np.linspace(m, self.size[v] - top, nv + 1)
 
     def centres(self) -> np.ndarray:
         """(B, 2) top-face bin centres (x, y), m, phantom frame, x-major order (top bins only)."""
@@ -123,7 +134,7 @@ class FieldLayout:
 
         The top takes what ``top_residuals`` keeps (interior, within 10 mm below the
         top); a side face takes, of the rest, points whose nearest rest face it is,
-        within 10 mm of it and ``margin`` from its edges."""
+        within ``side_tolerance`` of it and ``margin`` from its edges."""
         p = np.asarray(points, dtype=np.float64)
         m, (sx, sy, sz) = self.margin, self.size
         keep = (p[:, 0] > m) & (p[:, 0] < sx - m) & (p[:, 1] > m) & (p[:, 1] < sy - m) & (p[:, 2] > sz - 0.010)
@@ -141,7 +152,7 @@ class FieldLayout:
             _, _, eu, ev = self._edges(f)
             u, v = [a for a in (0, 1, 2) if a != _FACE_AXIS[f][0]]
             nu, nv = len(eu) - 1, len(ev) - 1
-            take = (~keep) & (nearest == fi) & (dist[:, fi] < 0.010)
+            take = (~keep) & (nearest == fi) & (dist[:, fi] < self.side_tolerance)
             take &= (p[:, u] > eu[0]) & (p[:, u] < eu[-1]) & (p[:, v] > ev[0]) & (p[:, v] < ev[-1])
             a = np.clip(((p[:, u] - eu[0]) / (eu[-1] - eu[0]) * nu).astype(int), 0, nu - 1)
             b = np.clip(((p[:, v] - ev[0]) / (ev[-1] - ev[0]) * nv).astype(int), 0, nv - 1)
@@ -149,12 +160,14 @@ class FieldLayout:
         return out
 
 
-def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: str) -> np.ndarray:
+def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: str,
+                   frames: np.ndarray | None = None) -> np.ndarray:
     """Signed normal residuals (m) of measured points against one face of the model.
 
     Args:
         points: (M, 3) measured points already assigned to ``face``, m, phantom frame.
-        positions: (N, 3) node positions of the grid mesh (grid-major order), m.
+        positions: (N, 3) node positions of the grid mesh (grid-major order), m; or
+            (F, N, 3) positions of F frames, with ``frames`` (M,) int giving each point's frame.
         grid: (nx, ny, nz). size: (3,) box size, m. face: one of :data:`FACES`.
 
     Returns:
@@ -166,25 +179,30 @@ def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: 
     axis, high = _FACE_AXIS[face]
     u, v = [a for a in (0, 1, 2) if a != axis]
     g = [int(n) for n in grid]
-    nodes = positions.reshape(g[0], g[1], g[2], 3)
-    sl = [slice(None)] * 3
-    sl[axis] = -1 if high else 0
-    fn = nodes[tuple(sl)]  # (n_u, n_v, 3): the remaining axes keep their order u < v
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim == 2:
+        pos = pos[None]
+        frames = np.zeros(len(points), dtype=np.int64)
+    nodes = pos.reshape(pos.shape[0], g[0], g[1], g[2], 3)
+    sl = [slice(None)] * 4
+    sl[1 + axis] = -1 if high else 0
+    fn = nodes[tuple(sl)]  # (F, n_u, n_v, 3): the remaining axes keep their order u < v
     nu, nv = g[u], g[v]
     hu, hv = size[u] / (nu - 1), size[v] / (nv - 1)
+    f = np.asarray(frames, dtype=np.int64)
 
     def interp(fld, a, b):
         s, t = a / hu, b / hv
         i = np.clip(np.floor(s).astype(int), 0, nu - 2)
         j = np.clip(np.floor(t).astype(int), 0, nv - 2)
         wa, wb = s - i, t - j
-        return ((1 - wa) * (1 - wb) * fld[i, j] + wa * (1 - wb) * fld[i + 1, j]
-                + (1 - wa) * wb * fld[i, j + 1] + wa * wb * fld[i + 1, j + 1])
+        return ((1 - wa) * (1 - wb) * fld[f, i, j] + wa * (1 - wb) * fld[f, i + 1, j]
+                + (1 - wa) * wb * fld[f, i, j + 1] + wa * wb * fld[f, i + 1, j + 1])
 
     p = np.asarray(points, dtype=np.float64)
-    a = p[:, u] - interp(fn[:, :, u] - np.linspace(0, size[u], nu)[:, None], p[:, u], p[:, v])
-    b = p[:, v] - interp(fn[:, :, v] - np.linspace(0, size[v], nv)[None, :], p[:, u], p[:, v])
-    r = p[:, axis] - interp(fn[:, :, axis], a, b)
+    a = p[:, u] - interp(fn[..., u] - np.linspace(0, size[u], nu)[None, :, None], p[:, u], p[:, v])
+    b = p[:, v] - interp(fn[..., v] - np.linspace(0, size[v], nv)[None, None, :], p[:, u], p[:, v])
+    r = p[:, axis] - interp(fn[..., axis], a, b)
     return r if high else -r
 
 
@@ -219,28 +237,32 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
         (field (F, B) float64 mean residual per bin, m (0 where a bin is empty or the
         frame diverged); per face of :data:`FACES`, the within-bin sum of squared
         deviations (5,) m^2 and its degrees of freedom (5,)): the last two estimate
-        each face's noise variance.
+        each face's noise variance. All frames are done in one vectorised pass per face.
     """
     F, B = counts.shape
     field = np.zeros((F, B))
     ss, dof = np.zeros(len(FACES)), np.zeros(len(FACES), dtype=np.int64)
     face_of = layout.face_of_bin()
-    size = layout.size
-    for f in range(F):
-        if points[f].shape[0] == 0 or not np.all(np.isfinite(positions[f])):
-            continue
-        fb = face_of[bins[f]]
-        r = np.empty(points[f].shape[0])
-        for k in np.unique(fb):
-            m = fb == k
-            r[m] = face_residuals(points[f][m], positions[f], grid, size, FACES[k])
-        sums = np.bincount(bins[f], weights=r, minlength=B)
-        n = counts[f]
-        mean = np.divide(sums, n, out=np.zeros(B), where=n > 0)
-        field[f] = mean
-        ss += np.bincount(fb, weights=(r - mean[bins[f]]) ** 2, minlength=len(FACES))
-        dof += np.bincount(fb, minlength=len(FACES)) - np.bincount(face_of[n > 0], minlength=len(FACES))
-    return field, ss, dof
+    pos = np.asarray(positions, dtype=np.float64)
+    ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
+    if not np.any(ok):
+        return field, ss, dof
+    use = np.flatnonzero(ok)
+    fr = np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in use])
+    pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
+    bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
+    fb = face_of[bn]
+    r = np.empty(pts.shape[0])
+    for k in np.unique(fb):
+        m = fb == k
+        r[m] = face_residuals(pts[m], pos, grid, layout.size, FACES[k], frames=fr[m])
+    flat = fr * B + bn
+    sums = np.bincount(flat, weights=r, minlength=F * B).reshape(F, B)
+    n = np.where(ok[:, None], counts, 0)
+    field = np.divide(sums, n, out=np.zeros((F, B)), where=n > 0)
+    ss = np.bincount(fb, weights=(r - field.ravel()[flat]) ** 2, minlength=len(FACES))
+    dof = np.bincount(fb, minlength=len(FACES)) - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=len(FACES))
+    return field, ss, dof.astype(np.int64)
 
 
 def phase_labels(times: np.ndarray, centres: np.ndarray, size, radius: float, *, speed: float = 0.002) -> np.ndarray:

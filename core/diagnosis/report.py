@@ -78,10 +78,10 @@ def _maps(diag: Diagnosis, out: Path) -> None:
     for j, rnd in enumerate(rounds):
         vals = [next((c.score for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
         ax.bar(np.arange(len(kinds)) + j * width, vals, width, label=f"round {rnd}")
-    ax.axhline(1.0, color="k", lw=1, ls="--", label="claim threshold")
+    ax.axhline(1.0, color="k", lw=1, ls="--", label="what a claim needs")
     ax.set_yscale("symlog", linthresh=0.1)
     ax.set_xticks(np.arange(len(kinds)) + 0.4 - width / 2, kinds, rotation=20, fontsize=8)
-    ax.set_ylabel("evidence (units of the threshold)")
+    ax.set_ylabel("held-out chi2 drop / critical value")
     ax.legend(fontsize=7)
     ax.set_title("evidence per candidate cause", fontsize=9)
     fig.savefig(out / "evidence.png", dpi=110)
@@ -148,20 +148,34 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         if unid:
             lines += ["", "Not identifiable from these data (95 % interval too wide): " + ", ".join(unid) + "."]
     else:
-        lines.append("**No effect found**: no candidate explains enough of the validation residual beyond noise "
-                     "and model-form error to pass the thresholds calibrated on sessions without effects.")
+        lines.append("**No effect found**: no candidate explains enough of the held-out residual, beyond noise "
+                     "and the base model's nuisances, to pass the test at the stated false-claim rate.")
     if diag.confounded:
         lines += ["", "Confounded (they explain the same residual about equally well; none is picked): "
                   + "; ".join(" / ".join(g) for g in diag.confounded) + "."]
+    if diag.detectability:
+        words = {"found": "found", "confounded": "confounded", "not_found": "not found", "cannot_tell": "cannot tell"}
+        lines += ["", "### Every kind: found, confounded, not found above a size, or cannot tell", "",
+                  "| kind | answer | smallest size these data would claim | assumed | why |", "|---|---|---|---|---|"]
+        for k, d in diag.detectability.items():
+            size = "none (cannot tell at any size)" if d.min_size is None else f"{d.min_size:.3g} {d.unit}"
+            assumed = ", ".join(f"{a}={json.dumps(v)}" for a, v in d.parameters.items())
+            lines.append(f"| {k} | {words.get(d.answer, d.answer)} | {size} | {assumed} | {d.why} |")
+    nuis = ", ".join(diag.nuisances) or "none"
     lines += ["", "![evidence](evidence.png)", "",
-              "Evidence is each candidate's drop of validation chi2, per channel (the binned surface "
-              "residual, and the probe force when recorded), in units of the threshold calibrated for that kind "
-              "on sessions without it; a claim needs more than 1.", "",
-              "| round | candidate | chi2 drop: surface | chi2 drop: force | evidence | confidence | claimed |",
-              "|---|---|---|---|---|---|---|"]
+              f"A candidate is fitted on the train sequences beside the base model's nuisances ({nuis}: the "
+              "model-form gap every real session carries) and judged on the validation sequences: its evidence "
+              "is the drop of the validation chi-square (surface and force), its p-value the share of the "
+              "session's own noise replicates (a wild block bootstrap of its residuals) that drop as much, and "
+              f"the kinds of a round are tested together by Holm's procedure: on a session without any effect, "
+              f"the chance that anything is claimed is at most {100 * diag.config.alpha:g} %.", "",
+              "| round | candidate | chi2 drop: surface | chi2 drop: force | critical | p-value | confidence | claimed |",
+              "|---|---|---|---|---|---|---|---|"]
     for c in diag.candidates:
         fo = "n/a" if c.delta_chi2_force is None else f"{c.delta_chi2_force:.0f}"
-        lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2_field:.0f} | {fo} | {c.score:.2f} | {c.confidence:.2f} | "
+        crit = "n/a" if c.critical is None or not math.isfinite(c.critical) else f"{c.critical:.0f}"
+        pv = "n/a" if c.p_value is None else f"{c.p_value:.3g}"
+        lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2_field:.0f} | {fo} | {crit} | {pv} | {c.confidence:.2f} | "
                      f"{'yes' if c.claimed else ''} |")
     lines += ["", "## What the fix is worth", ""]
     lo, hi = diag.gain_interval

@@ -43,7 +43,7 @@ class GenerateParams(_Strict):
     """Write a synthetic session with the virtual lab (``core.lab.generate_session``)."""
 
     name: str = Field("lab-session", pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$", description="name of the new session")
-    preset: Literal["small", "demo", "paper"] = "small"
+    preset: Literal["small", "demo", "paper", "field"] = "small"
     seed: int = Field(0, ge=0)
     effects: list[dict] = Field(default_factory=list, description='e.g. [{"kind": "gravity", "g": [0, 0, -9.81]}]')
     with_force: bool = False

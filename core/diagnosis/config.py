@@ -1,0 +1,115 @@
+"""Settings of a diagnosis (:class:`DiagnosisConfig`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from core.diagnosis.candidates import KINDS
+
+__all__ = ["DiagnosisConfig", "NUISANCES"]
+
+NUISANCES = ("youngs", "mesh", "law", "poisson", "damping", "contact", "registration", "robot", "dent", "force_law")
+"""The base model's nuisances, each a direction in which a real session's data differ
+from the replay model without any effect kind: Young's modulus (with force data: force
+scales with it), the model-form gap of the mesh (finer than the replay grid), the
+material law (stable neo-Hookean instead of corotational), Poisson's ratio, Rayleigh
+damping and the contact stiffness, the camera's registration (a rigid motion of the
+measured surface), the robot's calibration (a probe offset within its precision), each
+within a plausible range; and a generic smooth discrepancy of the
+dent's shape and of the force-indentation law (see :mod:`core.diagnosis.nuisance`)."""
+
+
+@dataclass(frozen=True)
+class DiagnosisConfig:
+    """Settings of a diagnosis.
+
+    Attributes:
+        youngs_modulus: E of the base model, Pa (the paper's 5e3 unless the session pins it).
+        poisson_ratio, grid, law: the replay model (the paper's 0.44, 13x5x5, corotational).
+        fine_grid: the grid the base residual and the reported errors come from
+            (multi-fidelity: signatures and fits run on ``grid``, their fields shifted by
+            the discrepancy ``fine - coarse`` of the base model, sequence by sequence). The
+            coarse grid's dent is ~1 mm off a 25x9x9 one's, more than several causes'
+            signal. None: everything on ``grid``.
+        coarse_dt: time step (s) of the coarse-grid runs when ``fine_grid`` is set (None:
+            the simulator's 1/120 s); a surrogate whose base field and force are shifted
+            onto the fine grid's. Measured on a 6 s session, 1/60 s against 1/120 s: fields
+            within 0.002 mm (noise 0.77 mm), forces within 1-4 mN (noise 8 mN).
+        layout_bins: bins of the residual field along x and y of the top face.
+        side_rows: bins along z on each side face (0: the top face only). Side faces carry
+            what the top cannot: side pokes, where a probe's radius and lateral offsets
+            show, and a phantom that sags sideways (gravity that is not straight down).
+        probe_exclusion: bins whose centre lies within this distance (m) of the measured
+            probe centre are left out (0: none).
+        side_probe_exclusion: side-face bins whose centre lies within this distance (m) of
+            the probe's sphere are left out: a side bin spans a third of the face's height,
+            the replay's 5 nodes over 36 mm cannot shape a side dent, and the instrument's
+            remains sit there (measured on a session of the replay's own model: 10x the
+            noise's chi2 per side bin during side presses, 1x elsewhere).
+        nuisances: the base model's nuisance directions (:data:`NUISANCES`): a cause is
+            claimed only for what it explains on held-out data beyond them. Every real
+            session carries a model-form gap that no effect kind describes.
+        alpha: the family-wise false-claim rate of each selection round: on a session
+            without any effect, the chance that anything is claimed (Holm 1979 across the
+            candidate kinds, each kind's null distribution from the session itself).
+        n_null: wild block-bootstrap replicates of each kind's null distribution.
+        block: length of the bootstrap's blocks of frames, s (the residual is correlated
+            within a poke; blocks of 1 s are treated as independent).
+        lm_iterations: most Levenberg-Marquardt iterations per candidate...
+        lm_tolerance: ...which stop early once a step lowers the train chi2 by less than
+            this (a fraction of one unit of chi2 cannot change a claim).
+        fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
+            claimed causes on ``fine_grid`` (0: keep the coarse fits).
+        max_causes: most causes claimed.
+        fit_youngs: report E fitted with the claimed causes (otherwise keep ``youngs_modulus``).
+        refine_mesh, n_boot: passed to the E fit (no force data); n_boot is also the
+            number of bootstrap replicates of the test gain's interval.
+        kinds: candidate kinds considered (all by default).
+        detectability: state for every kind the smallest size this session's data would
+            have claimed (``detectability`` in diagnosis.json).
+        seed: of the bootstraps.
+        use_force: put the probe force residual (simulated minus measured, per frame and
+            axis, in units of the force noise measured on rest frames) into the evidence
+            beside the residual field. None: when every sequence has force columns
+            (kinematics.csv ``fx, fy, fz``).
+    """
+
+    youngs_modulus: float = 5000.0
+    poisson_ratio: float = 0.44
+    grid: tuple[int, int, int] = (13, 5, 5)
+    law: str = "corotational"
+    fine_grid: tuple[int, int, int] | None = (25, 9, 9)
+    coarse_dt: float | None = 1.0 / 60.0
+    layout_bins: tuple[int, int] = (16, 8)
+    side_rows: int = 2
+    probe_exclusion: float = 0.0
+    side_probe_exclusion: float = 0.010
+    nuisances: tuple[str, ...] = NUISANCES
+    alpha: float = 0.01
+    n_null: int = 9999
+    block: float = 1.0
+    lm_iterations: int = 4
+    lm_tolerance: float = 1.0
+    fine_refit_iterations: int = 2
+    max_causes: int = 3
+    fit_youngs: bool = True
+    refine_mesh: bool = True
+    n_boot: int = 200
+    kinds: tuple[str, ...] = KINDS
+    detectability: bool = True
+    seed: int = 0
+    use_force: bool | None = None
+
+    def __post_init__(self):
+        from core.errors import TissueTwinError
+
+        unknown = [k for k in self.kinds if k not in KINDS]
+        if unknown:
+            raise TissueTwinError(f"unknown effect kind(s) {unknown}; expected some of {list(KINDS)}")
+        bad = [n for n in self.nuisances if n not in NUISANCES]
+        if bad:
+            raise TissueTwinError(f"unknown nuisance(s) {bad}; expected some of {list(NUISANCES)}")
+        if not 0.0 < self.alpha < 0.5:
+            raise TissueTwinError(f"alpha must be in (0, 0.5), got {self.alpha}")
+        if self.n_null < 99:
+            raise TissueTwinError(f"n_null must be at least 99, got {self.n_null}")

@@ -1,0 +1,359 @@
+"""Evidence of the diagnosis: replays of model variants, their residual fields and forces.
+
+A :class:`Spec` names a model (effects, Young's modulus, model-form variants); an
+:class:`Evidence` runs it on the sequences of a role through an executor (serially or on
+Dask), caches the runs, and turns them into weighted residual vectors whose squared norm
+is a chi-square: the field of :mod:`core.diagnosis.fields` weighted by its bin counts over
+the point noise, and with force data the probe force residual in units of the force noise
+measured on rest frames. Coarse-grid runs are shifted onto the fine grid's by the base
+model's discrepancy (multi-fidelity, an additive model-discrepancy correction in the
+spirit of Kennedy & O'Hagan 2001).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.fields import FieldLayout, frame_bins, residual_field
+from core.errors import TissueTwinError
+from core.identification.execution import Executor
+from core.identification.trials import Trial
+from core.simulation import SimulationConfig
+from core.simulation.replay import PreparedSession, build_replay_model, frame_errors
+from core.simulation.solver import simulate
+
+__all__ = ["FieldTrial", "FieldRun", "run_field", "Spec", "Evidence"]
+
+
+@dataclass(frozen=True)
+class FieldTrial:
+    """One replay for the diagnosis: a trial, the field layout, and whether to compute
+    the paper's point-to-mesh error too (slower: a KD-tree per frame)."""
+
+    trial: Trial
+    layout: FieldLayout
+    paper_error: bool = False
+
+
+@dataclass(frozen=True)
+class FieldRun:
+    """Evidence of one :class:`FieldTrial`.
+
+    Attributes:
+        sequence: name. ok: the simulation did not diverge.
+        field: (F, B) float64 mean signed normal residual per bin and frame, m.
+        ss, dof: per face of ``fields.FACES``, within-bin sums of squares (5,) m^2 and
+            their degrees of freedom (5,).
+        frame_sums: (F,) sum of point-to-mesh distances per frame, m, or None.
+        frame_counts: (F,) measured points per frame.
+        probe_centres: (F, 3) probe sphere centres at frame times, m, phantom frame.
+        force: (F, 3) simulated force of the probe on the phantom at frame times, N,
+            phantom frame.
+        youngs_modulus: E of the replay, Pa.
+        clock_offset: the replay's ``time_offset`` effect, s (0 without one): the robot's
+            clock, which stamps kinematics and force alike, runs this far ahead of the
+            camera's, so the force measured at camera time t is the row at t + offset.
+    """
+
+    sequence: str
+    ok: bool
+    field: np.ndarray
+    ss: np.ndarray
+    dof: np.ndarray
+    frame_sums: np.ndarray | None
+    frame_counts: np.ndarray
+    probe_centres: np.ndarray
+    force: np.ndarray
+    youngs_modulus: float
+    clock_offset: float = 0.0
+
+
+_BINS: dict = {}
+
+
+def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
+    """:func:`frame_bins` of a sequence's clouds, computed once per worker process."""
+    key = (str(prepared.path), id(prepared.sequences[name].clouds), name, layout)
+    out = _BINS.get(key)
+    if out is None:
+        if len(_BINS) >= 16:
+            _BINS.pop(next(iter(_BINS)))
+        out = _BINS[key] = frame_bins(prepared.sequences[name].clouds, layout)
+    return out
+
+
+def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
+    """Replay ``item.trial`` (a fresh model) and measure its residual field (worker function)."""
+    t = item.trial
+    seq = prepared.sequences[t.sequence]
+    model = build_replay_model(prepared, t.replay_config())
+    sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times)
+    pts, bins, counts = _binned(prepared, t.sequence, item.layout)
+    fld, ss, dof = residual_field(sim.positions, t.grid, item.layout, pts, bins, counts)
+    n = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
+    sums = None
+    if item.paper_error:
+        means, _ = frame_errors(sim.positions, t.grid, seq.clouds)
+        sums = means * n  # NaN where the frame diverged
+    offset = sum(float(e["offset"]) for e in t.effects if e["kind"] == "time_offset")
+    return FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
+                    np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), offset)
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A model of the diagnosis: effect dicts (SESSION_FORMAT.md) and Young's modulus (Pa)."""
+
+    effects: tuple
+    youngs_modulus: float
+    law: str | None = None
+    """Material law (None: the configured one); a model-form variant of :mod:`core.diagnosis.nuisance`."""
+    poisson_ratio: float | None = None
+    """Poisson's ratio (None: the configured one)."""
+    simulation: tuple = ()
+    """``SimulationConfig`` fields changed from the run's default, as (name, value) pairs."""
+
+
+class Evidence:
+    """Runs field trials through an executor and caches them by (effects, sequence, E, grid);
+    holds the weights of the evidence: bin counts per face noise, and with force data
+    the measured force and its noise.
+
+    Residual vectors (:meth:`vector`) hold, sequence after sequence of a role, the field
+    ``sqrt(n) r`` over frames and bins (frame-major), then with force data the force
+    residual times ``sqrt(sigma2)`` in units of the force noise, over frames and axes:
+    ``v @ v / sigma2`` is the chi-square of a run. :meth:`frames` gives each entry's
+    frame and :meth:`blocks` its block of frames for the bootstrap."""
+
+    def __init__(self, prepared: PreparedSession, cfg: DiagnosisConfig, executor: Executor, layout: FieldLayout):
+        self.prepared, self.cfg, self.executor, self.layout = prepared, cfg, executor, layout
+        self.variant_cache: dict = {}
+        self.cache: dict = {}
+        self.delta: dict[str, np.ndarray] = {}
+        self.force_delta: dict[str, np.ndarray] = {}
+        self.force_ratio: dict[str, float] = {}
+        self.simulations = 0
+        self.names = {role: [n for n, s in prepared.sequences.items() if s.role == role] for role in ("train", "validation", "test")}
+        self.counts, self.raw_counts = {}, {}
+        centres = layout.centres3()
+        for n, s in prepared.sequences.items():
+            counts = frame_bins(s.clouds, layout)[2]
+            self.raw_counts[n] = counts
+            c = s.probe.at(s.frame_times)
+            dist = np.linalg.norm(centres[None, :, :] - c[:, None, :], axis=2)
+            if cfg.probe_exclusion > 0:
+                counts = np.where(dist < cfg.probe_exclusion, 0, counts)
+            if cfg.side_probe_exclusion > 0:
+                side = layout.face_of_bin() > 0
+                counts = np.where(side[None, :] & (dist < prepared.probe_radius + cfg.side_probe_exclusion), 0, counts)
+            self.counts[n] = counts.astype(np.float64)
+        self.force, self.force_sigma, self.force_note = _force_evidence(prepared, cfg.use_force)
+        self.sigma2 = 1.0  # the top face's point noise variance, m^2 (set by weigh_faces)
+
+    @property
+    def use_force(self) -> bool:
+        return self.force is not None
+
+    def weigh_faces(self, face_sigma2: np.ndarray, sigma2: float) -> None:
+        """Scale each bin's point count by ``sigma2 / face_sigma2`` of its face, so that
+        ``n r^2 / sigma2`` is chi2 on every face (a face without noise estimate gets 0)."""
+        face_of = self.layout.face_of_bin()
+        ratio = np.where(face_sigma2 > 0, sigma2 / np.where(face_sigma2 > 0, face_sigma2, 1.0), 0.0)[face_of]
+        for n in self.counts:
+            self.counts[n] = self.counts[n] * ratio[None, :]
+            self.raw_counts[n] = self.raw_counts[n] * ratio[None, :]
+        self.sigma2 = float(sigma2)
+
+    def spec(self, effects: Sequence[dict] = (), E: float | None = None) -> Spec:
+        return Spec(tuple(effects), float(E or self.cfg.youngs_modulus))
+
+    def trial(self, seq: str, spec: Spec, grid) -> Trial:
+        c = self.cfg
+        coarse = c.fine_grid is not None and tuple(grid) != tuple(c.fine_grid)
+        sim = SimulationConfig(dt=c.coarse_dt) if coarse and c.coarse_dt else SimulationConfig()
+        if spec.simulation:
+            sim = replace(sim, **dict(spec.simulation))
+        return Trial(sequence=seq, youngs_modulus=spec.youngs_modulus, poisson_ratio=spec.poisson_ratio or c.poisson_ratio,
+                     grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim)
+
+    @staticmethod
+    def _key(spec: Spec, seq, paper, grid):
+        return (repr(tuple(sorted(repr(sorted(e.items())) for e in spec.effects))), seq, spec.youngs_modulus, paper, grid,
+                spec.law, spec.poisson_ratio, spec.simulation)
+
+    def runs(self, models: Sequence[Spec | Sequence[dict]], role: str, *, paper: bool = False,
+             fine: bool = False) -> list[list[FieldRun]]:
+        """Field runs of every model (a :class:`Spec`, or effect dicts at the configured
+        E) on every sequence of ``role`` (on the fine grid when ``fine`` and one is configured)."""
+        names = self.names[role]
+        grid = tuple(self.cfg.fine_grid) if fine and self.cfg.fine_grid else tuple(self.cfg.grid)
+        specs = [m if isinstance(m, Spec) else self.spec(m) for m in models]
+        todo, keys = [], []
+        for m in specs:
+            for n in names:
+                k = self._key(m, n, paper, grid)
+                if k not in self.cache and k not in keys:
+                    keys.append(k)
+                    todo.append(FieldTrial(self.trial(n, m, grid), self.layout, paper))
+        if todo:
+            out = self.executor.map(run_field, self.prepared, todo)
+            self.simulations += len(todo)
+            self.cache.update(zip(keys, out))
+        return [[self.cache[self._key(m, n, paper, grid)] for n in names] for m in specs]
+
+    def discrepancy(self, role: str) -> None:
+        """Store ``fine - coarse`` base fields (and forces) of the sequences of ``role``
+        (see ``fine_grid``)."""
+        if not self.cfg.fine_grid:
+            return
+        coarse, fine = self.runs([[]], role)[0], self.runs([[]], role, fine=True)[0]
+        for c, f in zip(coarse, fine):
+            if not (c.ok and f.ok):
+                raise TissueTwinError(f"{self.prepared.path}: the base model diverged on {c.sequence}")
+            self.delta[c.sequence] = f.field - c.field
+            cc = float(np.sum(c.force**2))
+            ratio = float(np.sum(f.force * c.force)) / cc if cc > 0 else 1.0
+            self.force_ratio[c.sequence] = ratio
+            self.force_delta[c.sequence] = f.force - ratio * c.force
+
+    def field(self, r: FieldRun) -> np.ndarray:
+        """(F, B) residual field of a coarse run, discrepancy-corrected."""
+        d = self.delta.get(r.sequence)
+        return r.field if d is None else r.field + d
+
+    def _shifted_force(self, r: FieldRun, shifted: bool) -> np.ndarray:
+        """(F, 3) force of a run, N; a coarse run's (``shifted``) mapped onto the fine grid:
+        ``c f + (f_fine - c f_coarse)(E / E_base)``, with ``c`` the least-squares ratio of
+        the base model's fine to coarse force on the sequence. The coarse grid locks
+        (measured c = 0.57-0.93 per sequence), so every force it makes, the changes a
+        candidate makes included (a friction force, a deeper dent), is too large by
+        about 1 / c; the remainder is additive, and proportional to E, as the force is
+        at a fixed dent."""
+        if not shifted or r.sequence not in self.force_delta:
+            return r.force
+        E = r.youngs_modulus / self.cfg.youngs_modulus
+        return self.force_ratio[r.sequence] * r.force + self.force_delta[r.sequence] * E
+
+    def force_residual(self, r: FieldRun, shifted: bool = True) -> np.ndarray:
+        """(F, 3) simulated minus measured force in units of the force noise (a coarse
+        run's force mapped onto the fine grid's, see :meth:`_shifted_force`)."""
+        return (self._shifted_force(r, shifted) - self.measured_force(r)) / self.force_sigma
+
+    def measured_force(self, r: FieldRun) -> np.ndarray:
+        """(F, 3) measured force at the run's frame times, N, read on the robot's clock as
+        the run assumes it (see ``FieldRun.clock_offset``)."""
+        if r.clock_offset == 0.0:
+            return self.force[r.sequence]
+        seq = self.prepared.sequences[r.sequence]
+        return seq.force_at(seq.frame_times + r.clock_offset)
+
+    def vector(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
+        """Weighted residual vector over the runs (inf if diverged): sqrt(n) r over bins
+        and frames, then, with force data, the force residual in noise units;
+        ``shifted``: coarse runs, discrepancy-corrected (fine runs: False)."""
+        parts = []
+        for r in runs:
+            w = np.sqrt(self.counts[r.sequence].astype(np.float64))
+            v = (w * (self.field(r) if shifted else r.field)).ravel()
+            if self.use_force:
+                v = np.concatenate([v, np.sqrt(self.sigma2) * self.force_residual(r, shifted).ravel()])
+            parts.append(v if r.ok else np.full(v.size, np.inf))
+        return np.concatenate(parts)
+
+    def frame_chi2(self, runs: list[FieldRun], shifted: bool = True) -> list[np.ndarray]:
+        """(F, 2) chi2 per frame of each run (inf where diverged): column 0 the field's
+        bins, column 1 the force's three axes (zero without force data)."""
+        out = []
+        for r in runs:
+            c = np.zeros((r.field.shape[0], 2))
+            if not r.ok:
+                out.append(c + np.inf)
+                continue
+            fld = self.field(r) if shifted else r.field
+            c[:, 0] = np.sum(self.counts[r.sequence] * fld**2, axis=1) / self.sigma2
+            if self.use_force:
+                c[:, 1] = np.sum(self.force_residual(r, shifted) ** 2, axis=1)
+            out.append(c)
+        return out
+
+    def youngs_column(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
+        """d vector / d log10 E of the runs if force is proportional to E and the field
+        does not depend on it: zero on the bins, ln(10) times the (shifted) force in
+        noise units (the vector's scale) on the force."""
+        parts = []
+        for r in runs:
+            z = np.zeros(r.field.size)
+            f = self._shifted_force(r, shifted)
+            parts += [z, math.log(10.0) * np.sqrt(self.sigma2) * (f / self.force_sigma).ravel()]
+        return np.concatenate(parts)
+
+    def frames(self, role: str) -> np.ndarray:
+        """(L,) int64: for each entry of a :meth:`vector` of ``role``, its frame's index
+        among all frames of the role's sequences (in order)."""
+        out, base = [], 0
+        B = self.layout.n_bins
+        for n in self.names[role]:
+            F = self.prepared.sequences[n].frame_times.size
+            f = np.arange(F) + base
+            out.append(np.repeat(f, B))
+            if self.use_force:
+                out.append(np.repeat(f, 3))
+            base += F
+        return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
+
+    def blocks(self, role: str) -> np.ndarray:
+        """(L,) int64: for each entry of a :meth:`vector` of ``role``, its block: frames of
+        one sequence within ``cfg.block`` seconds of each other, numbered over the role."""
+        per_frame, base = [], 0
+        for n in self.names[role]:
+            t = self.prepared.sequences[n].frame_times
+            b = np.floor((t - t[0]) / self.cfg.block).astype(np.int64)
+            per_frame.append(b + base)
+            base += int(b.max()) + 1
+        return np.concatenate(per_frame)[self.frames(role)] if per_frame else np.zeros(0, dtype=np.int64)
+
+    def force_rms(self, runs: list[FieldRun], shifted: bool = False) -> float:
+        """RMS norm of simulated minus measured force over the frames of ``runs``, N."""
+        res = np.concatenate([self.force_residual(r, shifted) * self.force_sigma for r in runs])
+        return float(np.sqrt(np.mean(np.sum(res**2, axis=1)))) if np.all(np.isfinite(res)) else math.nan
+
+
+def _force_evidence(prepared: PreparedSession, use_force: bool | None):
+    """Measured force at frame times per sequence, its noise per axis, and a note.
+
+    The noise is the RMS of each axis over rest frames (probe clear of the phantom for a
+    second), where the true force is zero, floored at 1 mN as the E fit's
+    (``core.identification.fit._force_noise``).
+
+    Returns:
+        ({sequence: (F, 3) N} or None, (3,) N or None, note: why force is (not) used).
+
+    Raises:
+        TissueTwinError: ``use_force`` is True and a sequence has no force columns.
+    """
+    seqs = prepared.sequences
+    missing = [n for n, s in seqs.items() if s.force is None]
+    if use_force is False:
+        return None, None, "not used (use_force=False)"
+    if missing:
+        if use_force:
+            raise TissueTwinError(f"{prepared.path}: use_force needs force columns (fx, fy, fz) in every "
+                                  f"kinematics.csv; {', '.join(missing)} has none")
+        return None, None, "no force columns in kinematics.csv"
+    force = {n: s.force_at(s.frame_times) for n, s in seqs.items()}
+    rest = np.concatenate([force[n][prepared.rest_frames(n)] for n in seqs])
+    if rest.shape[0] < 10:
+        if use_force:
+            raise TissueTwinError(f"{prepared.path}: cannot estimate the force noise: {rest.shape[0]} frames "
+                                  "with the probe clear of the phantom (need 10)")
+        return None, None, f"not used: {rest.shape[0]} rest frames to estimate the force noise (need 10)"
+    sigma = np.maximum(np.sqrt(np.mean(rest**2, axis=0)), 1e-3)
+    return force, sigma, f"used: noise {', '.join(f'{1e3 * v:.1f}' for v in sigma)} mN (x, y, z) from {rest.shape[0]} rest frames"
+
+
+

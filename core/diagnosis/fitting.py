@@ -1,0 +1,188 @@
+"""Levenberg-Marquardt fits of the candidate causes (and of Young's modulus) on train."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.nuisance import Nuisance
+from core.simulation.effects import EFFECT_KINDS, FitSpace
+
+__all__ = ["Fit", "fit_candidate", "rss", "SCALE_FREE", "E_STEP", "LM_DAMPING"]
+
+SCALE_FREE = frozenset(k for k, c in EFFECT_KINDS.items() if c.scales_with_youngs)
+"""Effect kinds that keep the model's displacements unchanged and scale its forces with E
+(declared by each kind: ``Effect.scales_with_youngs``)."""
+E_STEP = 0.02
+"""Forward-difference step of log10 E in the joint fits where it is not semi-analytic."""
+LM_DAMPING = (1e-3, 1e-1, 1.0)
+"""Levenberg-Marquardt damping values (times the diagonal of J^T J) of each iteration's trial steps."""
+
+
+@dataclass
+class Fit:
+    """A candidate's fit.
+
+    Attributes:
+        x: (n,) fit variables (with a joint E, log10 E is the last). se: (n,) their
+            standard errors (inf when the Jacobian is singular).
+        train_rss: squared norm of the (nuisance-projected) train residual vector.
+        effect: the effect dict at ``x`` (None for an E-only fit).
+        youngs_modulus: the model's E, Pa.
+        jacobian: (L, n) the last Jacobian on train (of the residual vector itself, not
+            nuisance-projected; at the last iterate but one when the last step was
+            accepted), or None.
+        starts: number of starting points tried (a look-elsewhere factor).
+    """
+
+    x: np.ndarray
+    se: np.ndarray
+    train_rss: float
+    effect: dict | None
+    youngs_modulus: float
+    jacobian: np.ndarray | None = None
+    starts: int = 1
+
+    @property
+    def effects(self) -> list[dict]:
+        return [] if self.effect is None else [self.effect]
+
+
+
+def rss(v: np.ndarray) -> float:
+    return float(v @ v) if np.all(np.isfinite(v)) else math.inf
+
+
+def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E: float | None = None,
+                  fit_youngs: bool = False, start: np.ndarray | None = None, fine: bool = False,
+                  iterations: int | None = None, nuisance: Nuisance | None = None) -> Fit:
+    """Levenberg-Marquardt fit of one candidate's variables on train, the other effects
+    ``fixed`` (on the coarse grid with the discrepancy shift, or on the fine grid when
+    ``fine``), forward-difference Jacobian (the candidate's signature); Nocedal & Wright
+    (2006), Sec. 10.3.
+
+    Args:
+        cand: the candidate; None fits E alone (``fit_youngs`` must be set).
+        E: Young's modulus of the model (Pa; default the configured one); the start of
+            log10 E when ``fit_youngs``.
+        fit_youngs: fit log10 E jointly, as the last variable.
+        start: a single starting vector (candidate's variables only) instead of ``cand.starts``.
+        iterations: most iterations (default ``cfg.lm_iterations``).
+        nuisance: fit the residual that the nuisance directions leave (variable
+            projection: their coefficients are solved in closed form at every point).
+    """
+    sigma2 = eng.sigma2
+    E0 = float(E or eng.cfg.youngs_modulus)
+    nv = 0 if cand is None else len(cand.names)
+    steps = np.zeros(0) if cand is None else cand.steps
+    lo_E, hi_E = math.log10(E0) - 2.0, math.log10(E0) + 2.0
+
+    def clip(x):
+        head = x[:nv] if cand is None else cand.clip(x[:nv])
+        return np.concatenate([head, np.clip(x[nv:], lo_E, hi_E)])
+
+    def spec(x) -> Spec:
+        eff = [] if cand is None else [cand.to_effect(x[:nv])]
+        return Spec(tuple(fixed) + tuple(eff), float(10.0 ** x[nv]) if fit_youngs else E0)
+
+    def runs(xs):
+        return eng.runs([spec(x) for x in xs], "train", fine=fine)
+
+    def raw(r):
+        return eng.vector(r, shifted=not fine)
+
+    def vec(r):
+        v = raw(r)
+        return v if nuisance is None else nuisance.project(v)
+
+    tail = [math.log10(E0)] if fit_youngs else []
+    kinds = {e["kind"] for e in fixed} | ({cand.kind} if cand is not None else set())
+    semi_analytic = kinds <= SCALE_FREE and nuisance is None
+    heads = [start] if start is not None else ([np.zeros(0)] if cand is None else list(cand.starts))
+    starts = [clip(np.concatenate([np.asarray(h, dtype=np.float64), tail])) for h in heads]
+    runs0 = runs(starts)
+    misfits = [rss(vec(r)) for r in runs0]
+    i = int(np.argmin(misfits))
+    x, raw_x = starts[i], raw(runs0[i])
+    r_x = raw_x if nuisance is None else nuisance.project(raw_x)
+    J = J_raw = None
+    for _ in range(eng.cfg.lm_iterations if iterations is None else iterations):
+        if not np.all(np.isfinite(r_x)) or x.size == 0:
+            break
+        pts = []
+        for j, h in enumerate(steps):
+            xj = x.copy()
+            xj[j] = x[j] + h if x[j] + h <= cand.upper[j] else x[j] - h
+            pts.append(xj)
+        if fit_youngs and semi_analytic:
+            # the log10 E column is semi-analytic: with every stiffness proportional to E
+            # (the contact's too), the quasi-static force is proportional to E at a fixed
+            # dent and the field does not depend on it (trial steps are real runs)
+            cols = runs(pts)
+            J_raw = np.stack([(raw(c) - raw_x) / (s[j] - x[j]) for j, (c, s) in enumerate(zip(cols, pts))]
+                             + [eng.youngs_column(runs([x])[0], shifted=not fine)], axis=1)
+        else:
+            if fit_youngs:
+                xe = x.copy()
+                xe[nv] = x[nv] + E_STEP
+                pts.append(xe)
+            cols = runs(pts)
+            J_raw = np.stack([(raw(c) - raw_x) / (s[j] - x[j]) for j, (c, s) in enumerate(zip(cols, pts))], axis=1)
+        if not np.all(np.isfinite(J_raw)):
+            J = J_raw = None
+            break
+        if nuisance is None:
+            J = J_raw
+        else:  # the projection is linear on the coefficients inside their bounds
+            lin = nuisance.active(raw_x)
+            J = np.stack([lin.project(c) for c in J_raw.T], axis=1)
+        A, g = J.T @ J, J.T @ r_x
+        D = np.diag(np.maximum(np.diag(A), 1e-30))
+        previous = rss(r_x)
+        steps_lm = []
+        for lam in LM_DAMPING:
+            try:
+                steps_lm.append(clip(x + np.linalg.solve(A + lam * D, -g)))
+            except np.linalg.LinAlgError:
+                continue
+        accepted = None
+        if fine or x.size < 4:
+            # the damping values are tried in turn and the first step that lowers the misfit
+            # is taken (Levenberg-Marquardt as in Nocedal & Wright Sec. 10.3): on the fine
+            # grid a replay costs ~20 coarse ones, and fits of one to three variables are
+            # close to linear
+            for x_try in steps_lm:
+                raw_try = raw(runs([x_try])[0])
+                r_try = raw_try if nuisance is None else nuisance.project(raw_try)
+                if rss(r_try) < previous:
+                    accepted = (x_try, r_try, raw_try)
+                    break
+        elif steps_lm:
+            # fits of four variables or more (an inclusion): all of them are replayed and the
+            # best is taken, fewer iterations for a nonlinear fit far from its start
+            out = [raw(o) for o in runs(steps_lm)]
+            projected = [o if nuisance is None else nuisance.project(o) for o in out]
+            vals = [rss(o) for o in projected]
+            k = int(np.argmin(vals))
+            if vals[k] < previous:
+                accepted = (steps_lm[k], projected[k], out[k])
+        if accepted is None:
+            break
+        x, r_x, raw_x = accepted
+        if previous - rss(r_x) < eng.cfg.lm_tolerance * sigma2:
+            break  # converged: the last step gained less than lm_tolerance in chi2
+    se = np.full(x.size, np.inf)
+    if J is not None:
+        try:
+            cov = sigma2 * np.linalg.inv(J.T @ J)
+            se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        except np.linalg.LinAlgError:
+            pass
+    sp = spec(x)
+    return Fit(x, se, rss(r_x), None if cand is None else cand.to_effect(x[:nv]), sp.youngs_modulus,
+               jacobian=J_raw, starts=len(starts))
+
+

@@ -1,0 +1,213 @@
+"""Held-out claims with a stated false-claim rate, and the smallest effect that would be claimed.
+
+**The statistic.** A candidate kind is fitted on the train sequences (with the base
+model's nuisance directions, :mod:`core.diagnosis.nuisance`, fitted beside it) and judged
+on the validation sequences, which its fit never saw: ``T`` is the drop of the
+validation chi-square from the model of the round to the model with the candidate, both
+with their nuisance coefficients carried over from train. Noise alone gives a ``T`` near
+or below zero; a cause that holds on held-out data gives a large one.
+
+**Its null distribution comes from the session itself.** Under "this kind is absent",
+linearised at the fit, ``T`` is a function of the train and validation noise:
+``theta = (J'J)^-1 J' e_t`` (``J`` the candidate's signature on train without its
+nuisance part), ``r0 = e_v - N_v N_t^+ e_t`` (the held-out residual), and
+``T = (2 r0' G theta - theta' G'G theta) / sigma^2`` with ``G = J_v - N_v N_t^+ J_t`` its
+held-out signature. The noise is resampled by a wild cluster bootstrap of the session's
+own residuals (Cameron, Gelbach & Miller 2008): each block of frames (1 s of one
+sequence: the residual is correlated within a poke) keeps its residuals, multiplied by
+one random weight of Webb's six-point distribution (Webb 2023, for few clusters). This
+keeps the session's noise level, its heteroscedasticity (points per bin, faces, force
+axes) and its within-block correlation, and removes any alignment with the signature.
+The p-value of a kind is the share of replicates at or above the observed ``T``, times
+the number of places its fit searched (an inclusion's starting locations: a
+look-elsewhere factor), and the kinds of a round are tested together by Holm's (1979)
+step-down procedure at the family-wise rate ``alpha``.
+
+**Detectability.** For an effect of strength ``s`` along a signature ``D`` (simulated at
+the kind's reference size and scaled, :meth:`core.simulation.effects.Effect.strength`),
+the same statistic is computed on ``e + s D``; the smallest size it would claim is the
+``s`` at which 80 % of the replicates reach the kind's critical value (the quantile of
+its null at ``alpha`` over the number of kinds, Bonferroni's bound of Holm's first step):
+the minimum detectable effect at 80 % power. The size is that of a fit along the
+signature itself (one parameter); a fit with more parameters needs a little more.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.diagnosis.nuisance import Nuisance
+
+__all__ = ["HeldOutTest", "holm", "webb_weights"]
+
+_WEBB = np.array([-math.sqrt(1.5), -1.0, -math.sqrt(0.5), math.sqrt(0.5), 1.0, math.sqrt(1.5)])
+
+
+def webb_weights(rng: np.random.Generator, replicates: int, clusters: int) -> np.ndarray:
+    """(replicates, clusters) float64 weights of Webb's six-point distribution (mean 0,
+    variance 1), for a wild cluster bootstrap with few clusters."""
+    return _WEBB[rng.integers(0, 6, size=(replicates, clusters))]
+
+
+def holm(p: dict[str, float], alpha: float) -> set[str]:
+    """The hypotheses Holm's (1979) step-down procedure rejects at family-wise rate ``alpha``.
+
+    Args:
+        p: {name: p-value}.
+
+    Returns:
+        The names whose null ("this kind is absent") is rejected.
+    """
+    order = sorted(p, key=lambda k: p[k])
+    m = len(order)
+    out: set[str] = set()
+    for i, k in enumerate(order):
+        if p[k] > alpha / (m - i):
+            break
+        out.add(k)
+    return out
+
+
+def _block_sums(values: np.ndarray, blocks: np.ndarray, n_blocks: int) -> np.ndarray:
+    """(n_blocks, k) sums over the rows of ``values`` (L, k) in each block."""
+    out = np.zeros((n_blocks, values.shape[1]))
+    np.add.at(out, blocks, values)
+    return out
+
+
+@dataclass
+class HeldOutTest:
+    """The held-out statistic of the round's candidates and its wild-bootstrap null.
+
+    Built once per round from the current model's residuals; every candidate is then
+    tested (:meth:`null`) and every kind's detectability solved (:meth:`min_strength`)
+    on the same bootstrap weights.
+
+    Attributes:
+        nuisance: the nuisance directions on train and validation.
+        e_train: (L_t,) current train residual without its nuisance part.
+        e_validation: (L_v,) current held-out validation residual.
+        blocks_train, blocks_validation: (L_t,), (L_v,) block of each entry.
+        sigma2: the point-noise variance, m^2 (vector entries are in units of m).
+        replicates: bootstrap replicates. seed: of the weights.
+    """
+
+    nuisance: Nuisance
+    e_train: np.ndarray
+    e_validation: np.ndarray
+    blocks_train: np.ndarray
+    blocks_validation: np.ndarray
+    sigma2: float
+    replicates: int = 9999
+    seed: int = 0
+
+    def __post_init__(self):
+        rng = np.random.default_rng(self.seed)
+        self.nb_t = int(self.blocks_train.max()) + 1 if self.blocks_train.size else 0
+        self.nb_v = int(self.blocks_validation.max()) + 1 if self.blocks_validation.size else 0
+        self.w_t = webb_weights(rng, self.replicates, self.nb_t)
+        self.w_v = webb_weights(rng, self.replicates, self.nb_v)
+        N_t = self.nuisance.train
+        self.N_t_pinv = np.linalg.pinv(N_t) if N_t.shape[1] else np.zeros((0, N_t.shape[0]))
+        # per-block nuisance coefficients of the train residual: beta* = w_t @ B
+        self._B = _block_sums((self.N_t_pinv * self.e_train[None, :]).T, self.blocks_train, self.nb_t) \
+            if N_t.shape[1] else np.zeros((self.nb_t, 0))
+
+    def _project(self, J: np.ndarray) -> np.ndarray:
+        if self.nuisance.size == 0:
+            return J
+        return J - self.nuisance.train @ (self.N_t_pinv @ J)
+
+    def held_out_signature(self, J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
+        """(L_v, p) ``G = J_v - N_v N_t^+ J_t``: what a change along ``J`` does to the
+        held-out residual once the nuisance coefficients are refitted on train."""
+        if self.nuisance.size == 0:
+            return J_v
+        return J_v - self.nuisance.validation @ (self.N_t_pinv @ J_t)
+
+    def _replicates(self, J_t: np.ndarray, J_v: np.ndarray, shift: np.ndarray | None = None,
+                    D_t: np.ndarray | None = None, D_v: np.ndarray | None = None) -> tuple:
+        """Per-replicate pieces of the statistic for a signature J (p columns)."""
+        Jp = self._project(np.asarray(J_t, dtype=np.float64))
+        G = self.held_out_signature(J_t, J_v)
+        A = _block_sums(Jp * self.e_train[:, None], self.blocks_train, self.nb_t)  # (nb_t, p)
+        Gv = _block_sums(G * self.e_validation[:, None], self.blocks_validation, self.nb_v)  # (nb_v, p)
+        M = Jp.T @ Jp
+        Minv = np.linalg.pinv(M)
+        theta = (self.w_t @ A) @ Minv  # (R, p)
+        g = self.w_v @ Gv  # (R, p): e_v*' G
+        if self.nuisance.size:
+            NG = self.nuisance.validation.T @ G  # (m, p)
+            g = g - (self.w_t @ self._B) @ NG
+        return theta, g, G, Jp, Minv
+
+    def null(self, J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
+        """(R,) replicates of ``T`` (chi-square units) for a candidate with train and
+        validation signatures ``J_t`` (L_t, p), ``J_v`` (L_v, p) under "absent"."""
+        theta, g, G, _, _ = self._replicates(J_t, J_v)
+        GG = G.T @ G
+        return (2.0 * np.sum(g * theta, axis=1) - np.einsum("rp,pq,rq->r", theta, GG, theta)) / self.sigma2
+
+    def p_value(self, observed: float, null: np.ndarray, searches: int = 1) -> float:
+        """Share of ``null`` replicates at or above ``observed`` (with the +1 of a
+        Monte-Carlo p-value), times ``searches``, at most 1."""
+        if not math.isfinite(observed):
+            return 1.0
+        p = (1.0 + float(np.sum(null >= observed))) / (null.size + 1.0)
+        return min(1.0, p * max(int(searches), 1))
+
+    def critical(self, null: np.ndarray, level: float) -> float:
+        """The (1 - level) quantile of ``null`` (the smallest T a claim at ``level`` needs)."""
+        q = min(max(1.0 - level, 0.0), 1.0)
+        return float(np.quantile(null, q, method="higher"))
+
+    def statistic(self, D_t: np.ndarray, D_v: np.ndarray, strength: float) -> np.ndarray:
+        """(R,) replicates of ``T`` for data holding ``strength`` times the signature
+        ``D`` ((L_t,), (L_v,)), fitted along ``D`` itself."""
+        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
+        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
+        theta, g, G, Jp, Minv = self._replicates(D_t, D_v)
+        s = float(strength)
+        theta = theta + s  # the fit along D recovers s plus the noise's part
+        GG = float((G.T @ G)[0, 0])
+        # r0 gains s G: g + s G'G
+        g = g + s * GG
+        return (2.0 * g[:, 0] * theta[:, 0] - GG * theta[:, 0] ** 2) / self.sigma2
+
+    def spread(self, D_t: np.ndarray, D_v: np.ndarray, strength: float, power: float = 0.8) -> float:
+        """The ``1 - power`` quantile of the noise's part of ``T`` at ``strength`` along D:
+        the replicates of :meth:`statistic` minus their noise-free value (it grows with the
+        strength: noise along a large change costs or gains more)."""
+        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
+        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
+        G = self.held_out_signature(D_t, D_v)
+        free = float(strength) ** 2 * float((G.T @ G)[0, 0]) / self.sigma2
+        return float(np.quantile(self.statistic(D_t, D_v, strength), 1.0 - power)) - free
+
+    def min_strength(self, D_t: np.ndarray, D_v: np.ndarray, critical: float, s_max: float,
+                     power: float = 0.8) -> float | None:
+        """The smallest strength (>= 0) along ``D`` at which ``T`` reaches ``critical`` in a
+        share ``power`` of the replicates (the minimum detectable effect at that power),
+        by bisection; None when even ``s_max`` does not."""
+        def med(s):
+            return float(np.quantile(self.statistic(D_t, D_v, s), 1.0 - power))
+
+        if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))) or s_max <= 0:
+            return None
+        if med(s_max) < critical:
+            return None
+        lo, hi = 0.0, float(s_max)
+        if med(lo) >= critical:
+            return 0.0
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            if med(mid) >= critical:
+                hi = mid
+            else:
+                lo = mid
+            if hi - lo <= 1e-4 * hi:
+                break
+        return hi

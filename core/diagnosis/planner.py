@@ -1,0 +1,521 @@
+"""The experiment that would tell: a palpation protocol that makes undetectable or
+confounded effect kinds decidable on this phantom.
+
+Method (optimal experimental design on the diagnosis's own signatures, in the spirit of a
+D-/A-optimal design on the Fisher information of each kind's size; Pukelsheim 2006):
+
+1. **Candidate moves** within the limits (:class:`PlanLimits`): presses into the top at a
+   grid of points, slides across the top along x and along y, presses into the middle of
+   each side face. Every move starts and ends at a safe height above the phantom, presses
+   along a face's inward normal no deeper than ``max_depth``, keeps its contact points
+   ``edge_margin`` inside the face and moves no faster than ``speed`` in contact.
+2. **Expected evidence of each move** for each kind: the move is replayed with the base
+   model of the diagnosis and with the kind at its reference size (its
+   :meth:`~core.simulation.effects.Effect.assumptions`); the change of the weighted
+   residual, with the base model's nuisance directions projected out
+   (:mod:`core.diagnosis.nuisance`), gives the non-centrality ``q`` per unit strength
+   squared: a kind of strength ``s`` is expected to add ``s^2 q`` to the held-out chi-square.
+   The surface is seen as the session's camera saw it (its bins, at its mean point
+   counts); the force with the session's force noise, or 10 mN when it recorded none.
+3. **Choice**: for each target kind the move with the largest ``q`` (the smallest size it
+   would show), then moves for the rest while the time budget lasts; moves are
+   independent, so their ``q`` add up. The predicted ``min_size`` of every kind is the
+   strength whose ``s^2 q`` reaches the critical value of a 1-parameter held-out test at
+   ``alpha`` over the number of kinds (chi-square with one degree of freedom).
+
+The plan's path is written in the robot frame (the session's calibration), as a
+``kinematics.csv`` of the session format that a dVRK script can replay, with a
+plain-language description; the virtual lab can record it (``generate_session(paths=...)``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.fields import FieldLayout
+from core.diagnosis.nuisance import nuisance_columns
+from core.errors import TissueTwinError
+from core.identification.execution import Executor, SerialExecutor
+from core.lab.probing import ProbeTrajectory, penetration_depth
+from core.simulation.effects import EFFECT_KINDS, PhantomContext
+from core.simulation.probe import ProbePath
+from core.simulation.replay import PreparedSequence, PreparedSession
+
+__all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_experiment", "write_plan", "NOMINAL_FORCE_NOISE"]
+
+NOMINAL_FORCE_NOISE = 0.01
+"""Force noise per axis assumed for a session that recorded no force, N (a dVRK force estimate)."""
+
+Callback = Callable[[float, str], None]
+
+
+class PlanError(TissueTwinError):
+    """No palpation within the limits can reach the phantom (the message says why)."""
+
+
+@dataclass(frozen=True)
+class PlanLimits:
+    """What a plan may ask of the robot.
+
+    Attributes:
+        max_depth: deepest indentation of the sphere below the rest surface, m.
+        speed: fastest probe speed while in contact, m/s.
+        travel_speed: speed of moves in free space, m/s.
+        edge_margin: contact points stay this far inside their face's edges, m.
+        bottom_margin: side contacts stay this far above the bottom plus a radius, m.
+        safe_height: gap between the sphere and the top while travelling, m.
+        hold: time held at full depth, s.
+        slide_length: length of a slide across the top, m.
+        duration: most seconds of probing in the plan.
+        camera_rate: frame rate of the camera the plan assumes, Hz (the session's).
+    """
+
+    max_depth: float = 0.008
+    speed: float = 0.010
+    travel_speed: float = 0.03
+    edge_margin: float = 0.008
+    bottom_margin: float = 0.006
+    safe_height: float = 0.010
+    hold: float = 1.0
+    slide_length: float = 0.010
+    duration: float = 20.0
+    camera_rate: float = 15.0
+
+
+@dataclass(frozen=True)
+class Move:
+    """One candidate move of the probe.
+
+    Attributes:
+        name: short id. description: plain language ("slide 10 mm across the top ...").
+        face: "+z" or a side face. knots_t: (K,) s from the move's start. knots_p: (K, 3)
+            sphere centres, m, phantom frame (minimum-jerk between knots).
+    """
+
+    name: str
+    description: str
+    face: str
+    knots_t: np.ndarray
+    knots_p: np.ndarray
+
+    @property
+    def duration(self) -> float:
+        return float(self.knots_t[-1])
+
+
+def _press(name, description, face, start_above, approach, pressed, slide_to, lim: PlanLimits) -> Move:
+    t, p = [0.0], [np.asarray(start_above, float)]
+
+    def go(target, speed):
+        target = np.asarray(target, float)
+        d = float(np.linalg.norm(target - p[-1]))
+        if d > 1e-9:
+            t.append(t[-1] + max(d / speed, 0.1))
+            p.append(target)
+
+    def wait(dt):
+        t.append(t[-1] + dt)
+        p.append(p[-1].copy())
+
+    go(approach, lim.travel_speed)
+    go(pressed, lim.speed)
+    wait(lim.hold)
+    if slide_to is not None:
+        go(slide_to, lim.speed)
+        wait(0.5 * lim.hold)
+        go(slide_to + (approach - pressed), lim.speed)
+    else:
+        go(approach, lim.speed)
+    go(start_above if slide_to is None else np.array([p[-1][0], p[-1][1], start_above[2]]), lim.travel_speed)
+    wait(1.0)  # back at rest before the next move
+    return Move(name, description, face, np.asarray(t), np.asarray(p))
+
+
+def candidate_moves(size, radius: float, limits: PlanLimits | None = None) -> list[Move]:
+    """The moves a plan chooses from on a box of ``size`` (3,) m with a probe of ``radius`` m.
+
+    Raises:
+        PlanError: the box leaves no room for a contact point within the margins, or the
+            limits allow no indentation.
+    """
+    lim = limits or PlanLimits()
+    size = np.asarray(size, dtype=np.float64)
+    sx, sy, sz = (float(v) for v in size)
+    m = lim.edge_margin
+    if not lim.max_depth > 0.0005:
+        raise PlanError(f"the depth limit {lim.max_depth * 1e3:.2f} mm allows no press the data could see (at least 0.5 mm)")
+    if sx <= 2 * m or sy <= 2 * m:
+        raise PlanError(f"the top face ({sx * 1e3:.1f} x {sy * 1e3:.1f} mm) has no point {m * 1e3:.0f} mm from its edges")
+    d = float(lim.max_depth)
+    z_safe = sz + radius + lim.safe_height
+    clear = 0.003
+    moves: list[Move] = []
+    xs = np.linspace(m, sx - m, 4)[1:3] if sx > 4 * m else [sx / 2]
+    ys = [sy / 2] if sy < 4 * m else [m + (sy - 2 * m) / 3, sy - m - (sy - 2 * m) / 3]
+    for x in xs:
+        for y in ys:
+            top = np.array([x, y, sz])
+            moves.append(_press(f"press-top-{x * 1e3:.0f}-{y * 1e3:.0f}",
+                                f"press the top at x = {x * 1e3:.0f} mm, y = {y * 1e3:.0f} mm to {d * 1e3:.0f} mm "
+                                f"at {lim.speed * 1e3:.0f} mm/s, hold {lim.hold:.1f} s",
+                                "+z", top + [0, 0, radius + lim.safe_height], top + [0, 0, radius + clear],
+                                top + [0, 0, radius - d], None, lim))
+    L = float(lim.slide_length)
+    for axis, (lo_u, hi_u) in ((0, (m, sx - m)), (1, (m, sy - m))):
+        if hi_u - lo_u < L:
+            continue
+        c = np.array([sx / 2, sy / 2, sz])
+        a = c.copy()
+        a[axis] = c[axis] - L / 2
+        b = c.copy()
+        b[axis] = c[axis] + L / 2
+        name = "xy"[axis]
+        moves.append(_press(f"slide-top-{name}",
+                            f"press the top at its centre to {d * 1e3:.0f} mm and slide {L * 1e3:.0f} mm along +{name} "
+                            f"at {lim.speed * 1e3:.0f} mm/s",
+                            "+z", a + [0, 0, radius + lim.safe_height], a + [0, 0, radius + clear],
+                            a + [0, 0, radius - d], b + [0, 0, radius - d], lim))
+    zmid = max(sz / 2, lim.bottom_margin + radius)
+    if zmid < sz - m:
+        for face, n, u in (("+x", (1, 0, 0), (sx, sy / 2)), ("-x", (-1, 0, 0), (0.0, sy / 2)),
+                           ("+y", (0, 1, 0), (sx / 2, sy)), ("-y", (0, -1, 0), (sx / 2, 0.0))):
+            n = np.array(n, dtype=np.float64)
+            pt = np.array([u[0], u[1], zmid])
+            above = pt + n * (radius + clear + 0.003)
+            above[2] = z_safe
+            moves.append(_press(f"press-{face}", f"press the {face} face at mid height ({zmid * 1e3:.0f} mm) to "
+                                f"{d * 1e3:.0f} mm at {lim.speed * 1e3:.0f} mm/s, hold {lim.hold:.1f} s",
+                                face, above, pt + n * (radius + clear), pt + n * (radius - d), None, lim))
+    for mv in moves:
+        _check_move(mv, size, radius, lim)
+    if not moves:
+        raise PlanError("no move fits the phantom within the limits")
+    return moves
+
+
+def _check_move(mv: Move, size: np.ndarray, radius: float, lim: PlanLimits) -> None:
+    """Raise PlanError if the move reaches deeper than the limit or leaves its face."""
+    tr = ProbeTrajectory(mv.knots_t, mv.knots_p)
+    t = np.arange(0.0, mv.duration + 1e-9, 0.005)
+    c = tr(t)
+    depth = penetration_depth(c, size, radius)
+    if depth.max() > lim.max_depth + 1e-6:
+        raise PlanError(f"move {mv.name} would press {depth.max() * 1e3:.2f} mm deep (limit {lim.max_depth * 1e3:.2f} mm)")
+    inside = depth > 0
+    if np.any(inside):
+        lo, hi = -radius, size + radius
+        if np.any(c[inside] < lo) or np.any(c[inside] > hi):
+            raise PlanError(f"move {mv.name} would touch the phantom outside its faces")
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A palpation protocol that would make the target kinds decidable.
+
+    Attributes:
+        moves: the chosen moves, in order. path_t: (K,) s. path_phantom: (K, 3) sphere
+            centres, m, phantom frame. path_robot: (K, 3) the same in the robot frame.
+        quaternion: (4,) tool orientation written to kinematics.csv (x, y, z, w).
+        targets: the kinds the plan was made for, and why.
+        predicted: {kind: predicted min_size of the session recorded with this plan (m,
+            s, ... in the kind's size unit), or None: still cannot tell}.
+        current: {kind: the diagnosed session's min_size}.
+        record_force: whether the plan asks for force to be recorded.
+        limits: the limits the plan keeps.
+        description: plain-language lines.
+    """
+
+    moves: tuple
+    path_t: np.ndarray
+    path_phantom: np.ndarray
+    path_robot: np.ndarray
+    quaternion: np.ndarray
+    targets: dict
+    predicted: dict
+    current: dict
+    record_force: bool
+    limits: PlanLimits
+    description: tuple = field(default_factory=tuple)
+
+    def to_json(self) -> dict:
+        return {
+            "format": "tissue-plan/1",
+            "targets": self.targets,
+            "moves": [{"name": m.name, "description": m.description, "face": m.face, "duration_s": m.duration}
+                      for m in self.moves],
+            "description": list(self.description),
+            "record_force": self.record_force,
+            "predicted_min_size": self.predicted,
+            "current_min_size": self.current,
+            "limits": {k: getattr(self.limits, k) for k in self.limits.__dataclass_fields__},
+            "path_phantom": {"t": self.path_t.tolist(), "centres": self.path_phantom.tolist()},
+            "duration_s": float(self.path_t[-1]),
+        }
+
+
+def _virtual_session(prepared: PreparedSession, path: ProbePath, rate: float, layout: FieldLayout) -> PreparedSession:
+    """A session whose sequences follow ``path`` and whose "clouds" are one point at every
+    bin centre (the signatures are differences of models; counts are set by the caller)."""
+    t = np.arange(0.0, float(path.t[-1]) + 1e-9, 1.0 / rate)
+    pts = layout.centres3().copy()
+    normals = {"top": (2, -1.0), "-x": (0, 1.0), "+x": (0, -1.0), "-y": (1, 1.0), "+y": (1, -1.0)}
+    from core.diagnosis.fields import FACES
+
+    for i, f in enumerate(FACES[: len(layout.faces())]):
+        m = layout.face_of_bin() == i
+        axis, sign = normals[f]
+        pts[m, axis] += sign * 1e-5  # just inside, so the binning finds each face
+    clouds = tuple(pts for _ in t)
+    zeros = np.zeros((path.t.size, 3))
+    seqs = {f"plan-{role}": PreparedSequence(f"plan-{role}", role, t, path, clouds, force=zeros)
+            for role in ("train", "validation", "test")}
+    return replace(prepared, sequences=seqs)
+
+
+def _mean_counts(ev: Evidence) -> np.ndarray:
+    """(B,) the session's mean points per bin over the frames that saw it (noise-weighted)."""
+    tot = np.zeros(ev.layout.n_bins)
+    seen = np.zeros(ev.layout.n_bins)
+    for n in ev.names["train"] + ev.names["validation"]:
+        c = ev.raw_counts[n]
+        tot += c.sum(axis=0)
+        seen += (c > 0).sum(axis=0)
+    return np.where(seen > 0, tot / np.maximum(seen, 1), 0.0)
+
+
+def _move_path(moves: Sequence[Move], size, radius: float, lim: PlanLimits) -> tuple[np.ndarray, np.ndarray]:
+    """Knots of the moves played one after the other (each starts where the last ended, at
+    a safe height), sampled every 10 ms."""
+    t0 = 0.0
+    ts, ps = [], []
+    z_safe = float(size[2]) + radius + lim.safe_height
+    prev = None
+    for mv in moves:
+        kt, kp = mv.knots_t, mv.knots_p
+        if prev is not None:
+            # travel at the safe height from the last move's end to this one's start
+            hop = np.array([kp[0][0], kp[0][1], max(z_safe, kp[0][2])])
+            d = float(np.linalg.norm(hop - prev))
+            if d > 1e-9:
+                t0 += max(d / lim.travel_speed, 0.1)
+                ts.append(t0)
+                ps.append(hop)
+        ts += list(t0 + kt)
+        ps += list(kp)
+        t0 += float(kt[-1])
+        prev = kp[-1]
+    kt, kp = np.asarray(ts), np.asarray(ps)
+    keep = np.concatenate([[True], np.diff(kt) > 1e-9])
+    traj = ProbeTrajectory(kt[keep], kp[keep])
+    t = np.arange(0.0, traj.duration + 1e-9, 0.01)
+    return t, traj(t)
+
+
+def _critical(alpha: float, n_kinds: int) -> float:
+    from scipy.stats import chi2
+
+    return float(chi2.isf(alpha / max(n_kinds, 1), 1))
+
+
+def plan_experiment(
+    prepared: PreparedSession,
+    detectability: dict,
+    config: DiagnosisConfig | None = None,
+    *,
+    fixed: Sequence[dict] = (),
+    youngs_modulus: float | None = None,
+    kinds: Sequence[str] | None = None,
+    limits: PlanLimits | None = None,
+    executor: Executor | None = None,
+    callback: Callback | None = None,
+) -> Plan:
+    """The palpation that would make the undetectable or confounded kinds decidable.
+
+    Args:
+        prepared: the diagnosed session (calibration, noise, camera coverage).
+        detectability: {kind: Detectability or its JSON} of the session's diagnosis.
+        config: the diagnosis's settings (alpha, nuisances, grid).
+        fixed: the causes the diagnosis claimed (effect dicts). youngs_modulus: its E, Pa.
+        kinds: the kinds to make decidable (default: every kind that could not be told,
+            was confounded, or would need more than its reference size to show).
+        limits: what the plan may ask of the robot.
+        executor: where the replays run.
+        callback: ``callback(fraction, message)``.
+
+    Returns:
+        A :class:`Plan`.
+
+    Raises:
+        PlanError: no move fits the phantom within the limits.
+    """
+    cfg = config or DiagnosisConfig()
+    lim = limits or PlanLimits(camera_rate=_camera_rate(prepared))
+    say = callback or (lambda f, m: None)
+    executor = executor or SerialExecutor()
+    E = float(youngs_modulus or cfg.youngs_modulus)
+
+    def entry(k):
+        d = detectability.get(k)
+        if d is None:
+            return None, None
+        return (d.min_size, getattr(d, "answer", None)) if hasattr(d, "min_size") else (d.get("min_size"), d.get("answer"))
+
+    all_kinds = [k for k in cfg.kinds if k in EFFECT_KINDS]
+    if kinds is None:
+        targets = {}
+        for k in all_kinds:
+            size, answer = entry(k)
+            cls = EFFECT_KINDS[k]
+            if size is None:
+                targets[k] = "cannot tell from this data"
+            elif answer == "confounded":
+                targets[k] = "confounded with another kind"
+            elif size > cls.reference_size:
+                targets[k] = f"shows only above {size:.3g} {cls.size_unit}"
+    else:
+        unknown = [k for k in kinds if k not in EFFECT_KINDS]
+        if unknown:
+            raise TissueTwinError(f"unknown effect kind(s) {unknown}; expected some of {sorted(EFFECT_KINDS)}")
+        targets = {k: "asked for" for k in kinds}
+    size = np.asarray(prepared.size, dtype=np.float64)
+    radius = float(prepared.probe_radius)
+    moves = candidate_moves(size, radius, lim)
+
+    # the session's camera coverage and noise
+    session_cfg = replace(cfg, fine_grid=None, coarse_dt=cfg.coarse_dt)
+    layout = FieldLayout(tuple(float(v) for v in size), cfg.layout_bins, side_rows=cfg.side_rows)
+    ev0 = Evidence(prepared, session_cfg, executor, layout)
+    base_runs = ev0.runs([[]], "train")[0] + ev0.runs([[]], "validation")[0]
+    ss = np.sum([r.ss for r in base_runs], axis=0)
+    dof = np.sum([r.dof for r in base_runs], axis=0)
+    face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
+    sigma2 = float(face_sigma2[0]) if dof[0] > 0 else float(ss.sum() / max(dof.sum(), 1))
+    ev0.weigh_faces(face_sigma2, sigma2)
+    counts = _mean_counts(ev0)
+    force_sigma = ev0.force_sigma if ev0.use_force else np.full(3, NOMINAL_FORCE_NOISE)
+    record_force = not ev0.use_force
+    ctx = PhantomContext(size, radius, np.array([[m.knots_p[2][0], m.knots_p[2][1]] for m in moves if m.face == "+z"]))
+    crit = _critical(cfg.alpha, len(all_kinds))
+
+    def evidence_for(move_list):
+        t, c = _move_path(move_list, size, radius, lim)
+        path = ProbePath(t, c)
+        virt = _virtual_session(prepared, path, lim.camera_rate, layout)
+        ev = Evidence(virt, replace(session_cfg, use_force=False), executor, layout)
+        for n in ev.counts:
+            ev.counts[n] = np.where(ev.counts[n] > 0, counts[None, :], 0.0)
+            ev.raw_counts[n] = ev.counts[n]
+        ev.sigma2 = sigma2
+        ev.force = {n: np.zeros((virt.sequences[n].frame_times.size, 3)) for n in virt.sequences}
+        ev.force_sigma = np.asarray(force_sigma, dtype=np.float64)
+        return ev
+
+    def q_of(ev, kind_list):
+        """{kind: (q per unit strength^2, assumption)} on the virtual sequence."""
+        N, _ = nuisance_columns(ev, "validation", list(fixed), E, cfg.nuisances)
+        v0 = ev.vector(ev.runs([Spec(tuple(fixed), E)], "validation")[0])
+        out = {}
+        for k in kind_list:
+            cls = EFFECT_KINDS[k]
+            best = None
+            for a in cls.assumptions(ctx):
+                eff = cls.sized(cls.reference_size, ctx, **a).to_dict()
+                v = ev.vector(ev.runs([Spec(tuple(fixed) + (eff,), E)], "validation")[0])
+                st = cls.strength(cls.reference_size)
+                if not np.all(np.isfinite(v)) or st == 0:
+                    continue
+                D = (v - v0) / st
+                if N.shape[1]:
+                    D = D - N @ np.linalg.lstsq(N, D, rcond=None)[0]
+                q = float(D @ D) / sigma2
+                pick = (best is None or (q > best[0] if cls.assume == "most_detectable" else q < best[0]))
+                if pick:
+                    best = (q, a)
+            out[k] = best or (0.0, {})
+        return out
+
+    # expected evidence of every move for every target kind
+    per_move = {}
+    for i, mv in enumerate(moves):
+        say(0.05 + 0.6 * i / len(moves), f"expected evidence of {mv.name}")
+        per_move[mv.name] = q_of(evidence_for([mv]), list(targets) or all_kinds[:1])
+    chosen: list[Move] = []
+    for k in targets:
+        ranked = sorted(moves, key=lambda m: -per_move[m.name][k][0])
+        if ranked and per_move[ranked[0].name][k][0] > 0 and ranked[0] not in chosen:
+            chosen.append(ranked[0])
+    budget = lim.duration
+    chosen = [m for m in chosen]
+    total = sum(m.duration for m in chosen)
+    while total > budget and len(chosen) > 1:
+        total -= chosen.pop().duration
+    if not chosen:
+        chosen = [moves[0]]
+    say(0.7, "predicting what the plan would show")
+    ev = evidence_for(chosen)
+    q_all = q_of(ev, all_kinds)
+    predicted, current = {}, {}
+    for k in all_kinds:
+        cls = EFFECT_KINDS[k]
+        q = q_all[k][0]
+        s = math.sqrt(crit / q) if q > 0 else math.inf
+        size_k = cls.size_at(s) if math.isfinite(s) else math.inf
+        predicted[k] = None if not math.isfinite(size_k) or size_k > cls.max_size else float(size_k)
+        current[k] = entry(k)[0]
+    t, c = _move_path(chosen, size, radius, lim)
+    T = np.asarray(prepared.calibration.T_phantom_robot, dtype=np.float64)
+    Tinv = np.linalg.inv(T)
+    robot = c @ Tinv[:3, :3].T + Tinv[:3, 3]
+    from scipy.spatial.transform import Rotation
+
+    q_tool = Rotation.from_matrix(Tinv[:3, :3]).as_quat()
+    lines = [f"{i + 1}. {m.description}" for i, m in enumerate(chosen)]
+    if record_force:
+        lines.append("record the probe force (fx, fy, fz in kinematics.csv): without it a press cannot tell a "
+                     "stiffer spot, friction or a larger probe from the gel's own stiffness")
+    lines.append("repeat the whole path at least three times (train, validation and test sequences)")
+    say(1.0, "done")
+    return Plan(tuple(chosen), t, c, robot, q_tool, targets, predicted, current, record_force, lim, tuple(lines))
+
+
+def _camera_rate(prepared: PreparedSession) -> float:
+    rates = [1.0 / float(np.median(np.diff(s.frame_times))) for s in prepared.sequences.values() if s.frame_times.size > 2]
+    return float(np.median(rates)) if rates else 15.0
+
+
+def write_plan(plan: Plan, out: str | Path) -> Path:
+    """Write ``kinematics.csv`` (the session format, robot frame), ``plan.json`` and ``plan.md``.
+
+    Raises:
+        OSError: the folder cannot be written.
+    """
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = ["t,x,y,z,qx,qy,qz,qw"]
+    qx, qy, qz, qw = (float(v) for v in plan.quaternion)
+    for t, p in zip(plan.path_t, plan.path_robot):
+        rows.append(f"{t:.4f},{p[0]:.7f},{p[1]:.7f},{p[2]:.7f},{qx:.7f},{qy:.7f},{qz:.7f},{qw:.7f}")
+    (out / "kinematics.csv").write_text("\n".join(rows) + "\n")
+    (out / "plan.json").write_text(json.dumps(plan.to_json(), indent=2))
+    lines = ["# Palpation plan", "", "Made for: " + "; ".join(f"{k} ({why})" for k, why in plan.targets.items()) if plan.targets
+             else "Made for: nothing was undecidable; a general protocol.", "", "## What to do", ""]
+    lines += list(plan.description)
+    lines += ["", f"Probe path: {plan.path_t[-1]:.1f} s, `kinematics.csv` (robot frame, the session's calibration), "
+              f"at most {plan.limits.max_depth * 1e3:.0f} mm deep and {plan.limits.speed * 1e3:.0f} mm/s in contact.", "",
+              "## What it would show", "", "| kind | smallest size now | predicted with this plan |", "|---|---|---|"]
+    for k in plan.predicted:
+        unit = EFFECT_KINDS[k].size_unit
+        now = plan.current.get(k)
+        pred = plan.predicted[k]
+        lines.append(f"| {k} | {'cannot tell' if now is None else f'{now:.3g} {unit}'} | "
+                     f"{'cannot tell' if pred is None else f'{pred:.3g} {unit}'} |")
+    (out / "plan.md").write_text("\n".join(lines) + "\n")
+    return out

@@ -1,0 +1,171 @@
+"""What the diagnosis reports besides its claims: where and when the base model is wrong,
+the test errors and gains with their bootstrap intervals, and how the session palpated."""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from core.diagnosis.evidence import Evidence, FieldRun
+from core.diagnosis.fields import FACES, PHASES, phase_labels
+from core.diagnosis.fitting import Fit
+from core.simulation.effects import FitSpace
+from core.simulation.replay import PreparedSession
+
+__all__ = ["fit_fields", "identifiable", "blocks", "test_error", "gain_interval", "summary", "joint_youngs", "palpation"]
+
+
+def fit_fields(cand: FitSpace, fit: Fit) -> dict:
+    """The :class:`CauseReport` fields that come from a fit of ``cand`` (with a joint
+    E, its log10 is the fit's last variable and is reported as ``log10_youngs_modulus``)."""
+    nv = len(cand.names)
+    names, units = cand.names + ("log10_youngs_modulus",), cand.units + ("Pa",)
+    return {"parameters": cand.to_parameters(fit.x[:nv]),
+            "fit_variables": {n: (float(v), float(s), u) for n, v, s, u in zip(names, fit.x, fit.se, units)},
+            "identifiable": identifiable(names, fit.x, fit.se)}
+
+
+def identifiable(names: Sequence[str], x: np.ndarray, se: np.ndarray) -> dict:
+    """{name: bool}: the 95 % interval is narrower than half a decade (log10 variables)
+    or than half the value (others)."""
+    out = {}
+    for name, v, s in zip(names, x, se):
+        if name.startswith("log10_"):
+            out[name[6:]] = bool(1.96 * s < 0.5)
+        else:
+            out[name] = bool(1.96 * s < 0.5 * max(abs(v), 1e-12))
+    return out
+
+
+def blocks(prepared: PreparedSession, names: list[str], block: float = 1.0) -> list[np.ndarray]:
+    out = []
+    for n in names:
+        t = prepared.sequences[n].frame_times
+        out.append(np.floor((t - t[0]) / block).astype(int))
+    return out
+
+
+def test_error(runs: list[FieldRun]) -> tuple[float, list[np.ndarray], list[np.ndarray]]:
+    sums = [r.frame_sums for r in runs]
+    counts = [r.frame_counts for r in runs]
+    if not all(r.ok for r in runs):
+        return math.nan, sums, counts
+    return float(sum(np.nansum(s) for s in sums) / sum(c.sum() for c in counts)), sums, counts
+
+
+def gain_interval(base, ext, blocks, n_boot: int, rng) -> tuple[float, float]:
+    (bs, bc), (es, _) = base, ext
+    vals = []
+    for _ in range(n_boot):
+        tb = te = tc = 0.0
+        for s0, s1, c, bl in zip(bs, es, bc, blocks):
+            nb = bl.max() + 1
+            w = np.bincount(rng.integers(0, nb, nb), minlength=nb)[bl]
+            tb += float(w @ np.nan_to_num(s0))
+            te += float(w @ np.nan_to_num(s1))
+            tc += float(w @ c)
+        vals.append(1.0 - te / tb if tb > 0 else 0.0)
+    return tuple(float(v) for v in np.percentile(vals, [2.5, 97.5]))
+
+
+def summary(eng: Evidence, runs: list[FieldRun], sigma2: float, prepared: PreparedSession) -> dict:
+    """Where and when the base model is wrong: systematic residual variance (m^2 beyond
+    noise) by phase, by distance from the probe and by region of the top face."""
+    centres = eng.layout.centres3()
+    face_of = eng.layout.face_of_bin()
+    by_face = {f: [0.0, 0.0, 0] for f in eng.layout.faces()}
+    by_phase = {p: [0.0, 0.0, 0] for p in PHASES}
+    by_dist = {"near (<10 mm)": [0.0, 0.0, 0], "mid (10-25 mm)": [0.0, 0.0, 0], "far (>25 mm)": [0.0, 0.0, 0]}
+    mean_map = np.zeros(eng.layout.n_bins)
+    sq_map = np.zeros(eng.layout.n_bins)
+    cnt_map = np.zeros(eng.layout.n_bins)
+    for r in runs:
+        n = eng.raw_counts[r.sequence].astype(np.float64)
+        fld = eng.field(r)
+        seq = prepared.sequences[r.sequence]
+        ph = phase_labels(seq.frame_times, r.probe_centres, prepared.size, prepared.probe_radius)
+        has = n > 0
+        excess = np.where(has, fld**2 - sigma2 / np.where(has, n, 1.0), 0.0)  # n: noise-weighted counts
+        for k, p in enumerate(PHASES):
+            m = (ph == k)[:, None] & has
+            by_phase[p][0] += float(excess[m].sum())
+            by_phase[p][1] += float((fld[m] ** 2).sum())
+            by_phase[p][2] += int(m.sum())
+        for k, f in enumerate(eng.layout.faces()):
+            m = (face_of == FACES.index(f))[None, :] & has
+            by_face[f][0] += float(excess[m].sum())
+            by_face[f][1] += float((fld[m] ** 2).sum())
+            by_face[f][2] += int(m.sum())
+        d = np.linalg.norm(centres[None, :, :] - r.probe_centres[:, None, :], axis=2)
+        for key, (lo, hi) in zip(by_dist, ((0, 0.010), (0.010, 0.025), (0.025, np.inf))):
+            m = (d >= lo) & (d < hi) & has
+            by_dist[key][0] += float(excess[m].sum())
+            by_dist[key][1] += float((fld[m] ** 2).sum())
+            by_dist[key][2] += int(m.sum())
+        mean_map += np.where(has, fld, 0.0).sum(axis=0)
+        sq_map += np.where(has, excess, 0.0).sum(axis=0)
+        cnt_map += has.sum(axis=0)
+
+    def table(d):
+        return {k: {"systematic_rms_m": math.sqrt(max(v[0], 0.0) / v[2]) if v[2] else None,
+                    "total_rms_m": math.sqrt(v[1] / v[2]) if v[2] else None, "bin_frames": v[2]} for k, v in d.items()}
+
+    total_sys = sum(v[0] for v in by_phase.values())
+    total = sum(v[1] for v in by_phase.values())
+    return {
+        "by_phase": table(by_phase),
+        "by_distance_from_probe": table(by_dist),
+        "by_face": table(by_face),
+        "systematic_fraction_of_variance": max(total_sys, 0.0) / total if total else 0.0,
+        "mean_map_m": (mean_map / np.maximum(cnt_map, 1))[: eng.layout.top_bins].reshape(eng.layout.bins).tolist(),
+        "systematic_rms_map_m": np.sqrt(np.maximum(sq_map / np.maximum(cnt_map, 1), 0.0))[: eng.layout.top_bins].reshape(eng.layout.bins).tolist(),
+    }
+
+
+def joint_youngs(fit: Fit) -> dict:
+    """The youngs_modulus entry of diagnosis.json from a joint fit (log10 E last):
+    value, 95 % interval from the Levenberg-Marquardt covariance, identifiable when the
+    interval spans less than half a decade."""
+    lg, se = float(fit.x[-1]), float(fit.se[-1])
+    ok = bool(np.isfinite(se) and 1.96 * se < 0.5)
+    return {"value": fit.youngs_modulus, "interval": [10.0 ** (lg - 1.96 * se), 10.0 ** (lg + 1.96 * se)] if np.isfinite(se) else None,
+            "identifiable": ok, "method": "fitted jointly with the claimed causes to the force and the residual field",
+            "reason": "force data set the scale of E" if ok else "the joint fit's interval spans half a decade or more"}
+
+
+def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:
+    """How the sequences ``names`` palpated the phantom: what a kind's detectability depends on.
+
+    Returns:
+        {"top_presses": K presses into the top face, "side_presses": presses into a side
+        face, "slides": presses that slid along the surface (probe moving sideways at
+        more than 2 mm/s while pressing, for at least 0.2 s), "force": whether every
+        sequence has force columns, "seconds": total duration}.
+    """
+    size = np.asarray(prepared.size, dtype=np.float64)
+    r = float(prepared.probe_radius)
+    top = side = slides = 0
+    seconds = 0.0
+    for n in names:
+        s = prepared.sequences[n]
+        t = s.frame_times
+        c = s.probe.at(t)
+        seconds += float(t[-1] - t[0]) if t.size > 1 else 0.0
+        inside = np.clip(c, 0.0, size)
+        gap = np.linalg.norm(c - inside, axis=1)
+        pressed = gap < r - 0.0005
+        beside = (c[:, 2] < size[2]) & ((c[:, 0] < 0) | (c[:, 0] > size[0]) | (c[:, 1] < 0) | (c[:, 1] > size[1]))
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
+        ph = phase_labels(t, c, size, r)
+        for a, b in zip(edges[::2], edges[1::2]):
+            if np.any(beside[a:b]):
+                side += 1
+            else:
+                top += 1
+            sliding = t[a:b][ph[a:b] == 4]
+            if sliding.size >= 2 and sliding[-1] - sliding[0] >= 0.2:
+                slides += 1
+    return {"top_presses": top, "side_presses": side, "slides": slides,
+            "force": all(prepared.sequences[n].force is not None for n in names), "seconds": seconds}
