@@ -51,6 +51,9 @@ from core.simulation.replay import PreparedSequence, PreparedSession
 
 __all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_experiment", "write_plan", "NOMINAL_FORCE_NOISE"]
 
+MIN_JERK_PEAK = 15.0 / 8.0
+"""Peak over mean speed of a minimum-jerk segment (Flash & Hogan 1985)."""
+
 NOMINAL_FORCE_NOISE = 0.01
 """Force noise per axis assumed for a session that recorded no force, N (a dVRK force estimate)."""
 
@@ -118,7 +121,8 @@ def _press(name, description, face, start_above, approach, pressed, slide_to, li
         target = np.asarray(target, float)
         d = float(np.linalg.norm(target - p[-1]))
         if d > 1e-9:
-            t.append(t[-1] + max(d / speed, 0.1))
+            # minimum jerk peaks at 15/8 of a segment's mean speed: ``speed`` is the peak
+            t.append(t[-1] + max(MIN_JERK_PEAK * d / speed, 0.1))
             p.append(target)
 
     def wait(dt):

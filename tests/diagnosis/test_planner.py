@@ -1,0 +1,73 @@
+"""The planner: its moves stay on the phantom's faces and within the depth and speed
+limits, an unreachable phantom is an error that says why, and for friction that the
+session could not tell it proposes a slide and asks for the force."""
+
+import json
+
+import numpy as np
+import pytest
+
+from app.cli import main
+from core.diagnosis.planner import PlanError, PlanLimits, candidate_moves
+from core.lab.probing import ProbeTrajectory, penetration_depth
+from core.simulation.effects import EFFECT_KINDS
+
+SIZE = np.array([0.068, 0.040, 0.036])
+RADIUS = 0.005
+
+
+@pytest.mark.parametrize("depth,speed", [(0.008, 0.010), (0.003, 0.004)])
+def test_moves_keep_to_the_faces_depth_and_speed(depth, speed):
+    lim = PlanLimits(max_depth=depth, speed=speed)
+    moves = candidate_moves(SIZE, RADIUS, lim)
+    faces = {m.face for m in moves}
+    assert faces == {"+z", "+x", "-x", "+y", "-y"}
+    assert any(m.name.startswith("slide") for m in moves)
+    for m in moves:
+        t = np.arange(0.0, m.duration, 0.002)
+        c = ProbeTrajectory(m.knots_t, m.knots_p)(t)
+        d = penetration_depth(c, SIZE, RADIUS)
+        assert d.max() == pytest.approx(depth, abs=2e-4), m.name  # presses to the limit, not beyond
+        assert d.max() <= depth + 1e-6
+        # in contact: never faster than the limit, and the sphere's centre over the face it presses
+        v = np.linalg.norm(np.diff(c, axis=0), axis=1) / 0.002
+        contact = (d[1:] > 0) & (d[:-1] > 0)
+        assert v[contact].max() <= 1.01 * speed, m.name
+        inside = d > 0
+        assert np.all(c[inside] >= -RADIUS) and np.all(c[inside] <= SIZE + RADIUS), m.name
+
+
+def test_an_unreachable_phantom_is_an_error_that_says_why():
+    with pytest.raises(PlanError, match="no point"):
+        candidate_moves([0.012, 0.040, 0.036], RADIUS, PlanLimits(edge_margin=0.008))
+    with pytest.raises(PlanError, match="depth limit"):
+        candidate_moves(SIZE, RADIUS, PlanLimits(max_depth=0.0002))
+
+
+@pytest.mark.slow
+def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
+    """``tissuetwin plan --kinds friction`` on a session without force: the plan slides
+    across the top, asks for the force, predicts a friction ``min_size`` it can show, and
+    writes a path the virtual lab can record."""
+    diag = tmp_path / "diag"
+    diag.mkdir()
+    detect = {k: {"min_size": None, "parameters": {}, "why": "test"} for k in EFFECT_KINDS}
+    (diag / "diagnosis.json").write_text(json.dumps({"detectability": detect, "answers": {}, "extended": {"effects": []},
+                                                     "youngs_modulus": {}}))
+    out = tmp_path / "plan"
+    assert main(["plan", str(small_session), "--diagnosis", str(diag), "--out", str(out), "--kinds", "friction",
+                 "--serial", "--duration", "12"]) == 0
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["format"] == "tissue-plan/1" and plan["targets"] == {"friction": "asked for"}
+    assert any(m["name"].startswith("slide") for m in plan["moves"]), plan["moves"]
+    assert plan["record_force"] is True and any("force" in line for line in plan["description"])
+    mu = plan["predicted_min_size"]["friction"]
+    assert mu is not None and mu < EFFECT_KINDS["friction"].max_size
+    assert plan["duration_s"] <= 12.0 + 1e-9
+    assert "slide" in (out / "plan.md").read_text()
+    assert (out / "kinematics.csv").read_text().splitlines()[0].startswith("t,")
+    # the lab records it
+    rec = tmp_path / "recorded"
+    assert main(["generate", str(rec), "--plan", str(out), "--force",
+                 "--effects", '[{"kind": "friction", "mu": 0.5}]']) == 0
+    assert (rec / "sequences").is_dir() and "fx" in next((rec / "sequences").glob("*/kinematics.csv")).read_text().splitlines()[0]
