@@ -78,13 +78,16 @@ _BINS: dict = {}
 
 def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
     """:func:`frame_bins` of a sequence's clouds, computed once per worker process."""
-    key = (str(prepared.path), id(prepared.sequences[name].clouds), name, layout)
-    out = _BINS.get(key)
-    if out is None:
+    clouds = prepared.sequences[name].clouds
+    key = (str(prepared.path), id(clouds), name, layout)
+    hit = _BINS.get(key)
+    # the entry holds the clouds themselves: an id is reused once its object is freed (the
+    # planner's virtual sequences share names and come and go)
+    if hit is None or hit[0] is not clouds:
         if len(_BINS) >= 16:
             _BINS.pop(next(iter(_BINS)))
-        out = _BINS[key] = frame_bins(prepared.sequences[name].clouds, layout)
-    return out
+        hit = _BINS[key] = (clouds, frame_bins(clouds, layout))
+    return hit[1]
 
 
 def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:

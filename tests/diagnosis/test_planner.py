@@ -68,6 +68,6 @@ def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
     assert (out / "kinematics.csv").read_text().splitlines()[0].startswith("t,")
     # the lab records it
     rec = tmp_path / "recorded"
-    assert main(["generate", str(rec), "--plan", str(out), "--force",
+    assert main(["generate", "--out", str(rec), "--plan", str(out), "--force",
                  "--effects", '[{"kind": "friction", "mu": 0.5}]']) == 0
     assert (rec / "sequences").is_dir() and "fx" in next((rec / "sequences").glob("*/kinematics.csv")).read_text().splitlines()[0]
