@@ -79,7 +79,6 @@ def _plan_path(plan: str):
 
 
 def cmd_generate(args) -> int:
-    from dataclasses import replace
 
     from core.lab import generate_session
     from core.lab.generate import PRESETS
@@ -87,9 +86,7 @@ def cmd_generate(args) -> int:
     effects = _parse_effects(args.effects)
     preset = PRESETS[args.preset]
     if args.duration is not None:
-        if not args.duration > 0:
-            raise TissueTwinError(f"--duration must be positive, got {args.duration}")
-        preset = replace(preset, sequence_durations=(float(args.duration),) * len(preset.sequence_roles))
+        preset = preset.with_duration(args.duration)
     paths = None
     if args.plan:
         paths = [_plan_path(args.plan)] * len(preset.sequence_roles)

@@ -41,7 +41,6 @@ import json
 import tempfile
 import time
 import traceback
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -92,8 +91,7 @@ def learned_gain(session: Path, youngs: float, cfg: DiagnosisConfig) -> tuple[fl
 
 def lab_config(duration: float) -> LabConfig:
     """The ``field`` preset with every sequence ``duration`` s long."""
-    cfg = PRESETS["field"]
-    return replace(cfg, sequence_durations=(float(duration),) * len(cfg.sequence_roles))
+    return PRESETS["field"].with_duration(duration)
 
 
 def phantom_context(cfg: LabConfig) -> PhantomContext:

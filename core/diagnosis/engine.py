@@ -53,7 +53,7 @@ from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest, holm
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
-from core.diagnosis.summary import (blocks, fit_fields, gain_interval, joint_youngs, palpation, summary,
+from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
                                     test_error)
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
@@ -402,7 +402,7 @@ def diagnose_prepared(
 
     # test errors: base, each cause alone, extended
     say(0.9, "measuring the gain on the test sequences")
-    test_blocks = blocks(prepared, ev.names["test"])
+    test_blocks = ev.frame_blocks("test")
     base_spec = ev.spec([], E_base)
     base_test = ev.runs([base_spec], "test", paper=True, fine=True)[0]
     b_err, b_s, b_c = test_error(base_test)
@@ -480,7 +480,7 @@ def _min_size(ev: Evidence, rnd: _Round, cls, ctx: PhantomContext, assumed: dict
     """The smallest size of ``cls`` with the ``assumed`` parameters that the round's test
     would claim with probability :data:`POWER`: the strength whose noise-free held-out
     statistic, plus the noise's part at that power (from the session's own replicates,
-    :meth:`HeldOutTest.spread`), reaches ``critical``. The nuisances keep their bounds (a
+    :meth:`HeldOutTest.min_strength`), reaches ``critical``. The nuisances keep their bounds (a
     0.8 mm sag is not a 0.2 mm registration error), so this is solved by bisection on the
     bounded projection. The signature is simulated at the reference size and scaled, then
     once more at the size found (the change is not linear in the size for every kind)."""
@@ -493,19 +493,11 @@ def _min_size(ev: Evidence, rnd: _Round, cls, ctx: PhantomContext, assumed: dict
         if sig is None or st == 0:
             return found
         D_t, D_v = sig[0] / st, sig[1] / st
-
-        def T(s):
-            return _expected_statistic(rnd, D_t, D_v, s, ev.sigma2) + rnd.test.spread(D_t, D_v, s, POWER)
-
-        if T(s_max) < critical:
+        s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER,
+                                  expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
+        if s is None:
             return None
-        lo, hi = 0.0, s_max
-        for _ in range(40):
-            mid = 0.5 * (lo + hi)
-            lo, hi = (lo, mid) if T(mid) >= critical else (mid, hi)
-            if hi - lo <= 1e-3 * hi:
-                break
-        found = cls.size_at(hi)
+        found = cls.size_at(s)
         if abs(found - size) <= 0.05 * max(abs(size), 1e-12):
             break
         size = found

@@ -135,7 +135,6 @@ class Evidence:
 
     def __init__(self, prepared: PreparedSession, cfg: DiagnosisConfig, executor: Executor, layout: FieldLayout):
         self.prepared, self.cfg, self.executor, self.layout = prepared, cfg, executor, layout
-        self.variant_cache: dict = {}
         self.cache: dict = {}
         self.delta: dict[str, np.ndarray] = {}
         self.force_delta: dict[str, np.ndarray] = {}
@@ -268,22 +267,6 @@ class Evidence:
             parts.append(v if r.ok else np.full(v.size, np.inf))
         return np.concatenate(parts)
 
-    def frame_chi2(self, runs: list[FieldRun], shifted: bool = True) -> list[np.ndarray]:
-        """(F, 2) chi2 per frame of each run (inf where diverged): column 0 the field's
-        bins, column 1 the force's three axes (zero without force data)."""
-        out = []
-        for r in runs:
-            c = np.zeros((r.field.shape[0], 2))
-            if not r.ok:
-                out.append(c + np.inf)
-                continue
-            fld = self.field(r) if shifted else r.field
-            c[:, 0] = np.sum(self.counts[r.sequence] * fld**2, axis=1) / self.sigma2
-            if self.use_force:
-                c[:, 1] = np.sum(self.force_residual(r, shifted) ** 2, axis=1)
-            out.append(c)
-        return out
-
     def youngs_column(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
         """d vector / d log10 E of the runs if force is proportional to E and the field
         does not depend on it: zero on the bins, ln(10) times the (shifted) force in
@@ -309,13 +292,20 @@ class Evidence:
             base += F
         return np.concatenate(out) if out else np.zeros(0, dtype=np.int64)
 
-    def blocks(self, role: str) -> np.ndarray:
-        """(L,) int64: for each entry of a :meth:`vector` of ``role``, its block: frames of
-        one sequence within ``cfg.block`` seconds of each other, numbered over the role."""
-        per_frame, base = [], 0
+    def frame_blocks(self, role: str) -> list[np.ndarray]:
+        """Per sequence of ``role``, (F,) int64 block of each frame: frames within
+        ``cfg.block`` seconds of the sequence's start of a block, numbered from 0."""
+        out = []
         for n in self.names[role]:
             t = self.prepared.sequences[n].frame_times
-            b = np.floor((t - t[0]) / self.cfg.block).astype(np.int64)
+            out.append(np.floor((t - t[0]) / self.cfg.block).astype(np.int64))
+        return out
+
+    def blocks(self, role: str) -> np.ndarray:
+        """(L,) int64: for each entry of a :meth:`vector` of ``role``, its block
+        (:meth:`frame_blocks`), numbered over the role."""
+        per_frame, base = [], 0
+        for b in self.frame_blocks(role):
             per_frame.append(b + base)
             base += int(b.max()) + 1
         return np.concatenate(per_frame)[self.frames(role)] if per_frame else np.zeros(0, dtype=np.int64)

@@ -129,6 +129,15 @@ class FieldLayout:
             out.append(c)
         return np.concatenate(out)
 
+    def normals3(self) -> np.ndarray:
+        """(B, 3) outward unit normal of each bin's rest face, phantom frame, in bin order."""
+        out = np.zeros((self.n_bins, 3))
+        face_of = self.face_of_bin()
+        for fi, f in enumerate(FACES):
+            axis, high = _FACE_AXIS[f]
+            out[face_of == fi, axis] = 1.0 if high else -1.0
+        return out
+
     def index(self, points: np.ndarray) -> np.ndarray:
         """(M,) bin index of each (M, 3) point, -1 where no face takes it.
 

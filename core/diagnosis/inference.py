@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -172,50 +173,61 @@ class HeldOutTest:
         q = min(max(1.0 - level, 0.0), 1.0)
         return float(np.quantile(null, q, method="higher"))
 
+    def _strength_replicates(self, D_t: np.ndarray, D_v: np.ndarray):
+        """``(at, GG)``: ``at(s)`` gives the (R,) replicates of ``T`` for data holding ``s``
+        times the signature ``D`` ((L_t,), (L_v,)), fitted along ``D`` itself; ``GG`` is
+        ``|G|^2`` of its held-out signature. The bootstrap's pieces do not depend on ``s``
+        and are computed once."""
+        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
+        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
+        theta0, g0, G, _, _ = self._replicates(D_t, D_v)
+        GG = float((G.T @ G)[0, 0])
+
+        def at(s: float) -> np.ndarray:
+            theta = theta0[:, 0] + s  # the fit along D recovers s plus the noise's part
+            g = g0[:, 0] + s * GG  # r0 gains s G: g + s G'G
+            return (2.0 * g * theta - GG * theta**2) / self.sigma2
+
+        return at, GG
+
     def statistic(self, D_t: np.ndarray, D_v: np.ndarray, strength: float) -> np.ndarray:
         """(R,) replicates of ``T`` for data holding ``strength`` times the signature
         ``D`` ((L_t,), (L_v,)), fitted along ``D`` itself."""
-        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
-        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
-        theta, g, G, Jp, Minv = self._replicates(D_t, D_v)
-        s = float(strength)
-        theta = theta + s  # the fit along D recovers s plus the noise's part
-        GG = float((G.T @ G)[0, 0])
-        # r0 gains s G: g + s G'G
-        g = g + s * GG
-        return (2.0 * g[:, 0] * theta[:, 0] - GG * theta[:, 0] ** 2) / self.sigma2
-
-    def spread(self, D_t: np.ndarray, D_v: np.ndarray, strength: float, power: float = 0.8) -> float:
-        """The ``1 - power`` quantile of the noise's part of ``T`` at ``strength`` along D:
-        the replicates of :meth:`statistic` minus their noise-free value (it grows with the
-        strength: noise along a large change costs or gains more)."""
-        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
-        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
-        G = self.held_out_signature(D_t, D_v)
-        free = float(strength) ** 2 * float((G.T @ G)[0, 0]) / self.sigma2
-        return float(np.quantile(self.statistic(D_t, D_v, strength), 1.0 - power)) - free
+        return self._strength_replicates(D_t, D_v)[0](float(strength))
 
     def min_strength(self, D_t: np.ndarray, D_v: np.ndarray, critical: float, s_max: float,
-                     power: float = 0.8) -> float | None:
+                     power: float = 0.8, expected: Callable[[float], float] | None = None) -> float | None:
         """The smallest strength (>= 0) along ``D`` at which ``T`` reaches ``critical`` in a
         share ``power`` of the replicates (the minimum detectable effect at that power),
-        by bisection; None when even ``s_max`` does not."""
-        def med(s):
-            return float(np.quantile(self.statistic(D_t, D_v, s), 1.0 - power))
+        by bisection to 0.1 %; None when even ``s_max`` does not.
 
+        ``expected(s)``: the noise-free ``T`` at strength ``s`` (default ``s^2 |G|^2 /
+        sigma^2``, the linear projection). The noise's part at that power (the replicates'
+        ``1 - power`` quantile minus their own noise-free value; it grows with the strength:
+        noise along a large change costs or gains more) is added to it, so a caller whose
+        nuisances are bounded passes its own noise-free statistic."""
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))) or s_max <= 0:
             return None
-        if med(s_max) < critical:
+        at, GG = self._strength_replicates(D_t, D_v)
+        if not GG > 0:
+            return None  # the signature does not change the held-out data at any strength
+
+        def free(s):
+            return s * s * GG / self.sigma2
+
+        exp = expected or free
+
+        def T(s):
+            return exp(s) + float(np.quantile(at(s), 1.0 - power)) - free(s)
+
+        if T(s_max) < critical:
             return None
         lo, hi = 0.0, float(s_max)
-        if med(lo) >= critical:
+        if T(lo) >= critical:
             return 0.0
         for _ in range(50):
             mid = 0.5 * (lo + hi)
-            if med(mid) >= critical:
-                hi = mid
-            else:
-                lo = mid
-            if hi - lo <= 1e-4 * hi:
+            lo, hi = (lo, mid) if T(mid) >= critical else (mid, hi)
+            if hi - lo <= 1e-3 * hi:
                 break
         return hi

@@ -48,7 +48,7 @@ from typing import Sequence
 import numpy as np
 
 from core.diagnosis.evidence import Evidence, Spec
-from core.diagnosis.fields import FACES
+from core.lab.probing import penetration_depth
 
 __all__ = ["Nuisance", "nuisance_columns", "VARIANTS", "BOUNDS"]
 
@@ -96,11 +96,7 @@ def _registration_columns(ev: Evidence, role: str) -> np.ndarray:
     changes of the weighted residual field (zero on the force)."""
     lay = ev.layout
     centres = lay.centres3()
-    normals = np.zeros((lay.n_bins, 3))
-    for fi, f in enumerate(FACES):
-        m = lay.face_of_bin() == fi
-        axis, high = {"top": (2, True), "-x": (0, False), "+x": (0, True), "-y": (1, False), "+y": (1, True)}[f]
-        normals[m, axis] = 1.0 if high else -1.0
+    normals = lay.normals3()
     size = np.asarray(lay.size, dtype=np.float64)
     arm = centres - size / 2
     half = float(np.max(size) / 2)
@@ -130,12 +126,7 @@ def _indentation(ev: Evidence, name: str) -> tuple[np.ndarray, np.ndarray, np.nd
     seq = ev.prepared.sequences[name]
     t = seq.frame_times
     c = seq.probe.at(t)
-    size = np.asarray(ev.prepared.size, dtype=np.float64)
-    r = float(ev.prepared.probe_radius)
-    inside = np.clip(c, 0.0, size)
-    gap = np.linalg.norm(c - inside, axis=1)
-    depth_in = np.min(np.concatenate([c, size - c], axis=1), axis=1) + r
-    depth = np.where(gap > 0, np.maximum(r - gap, 0.0), depth_in)
+    depth = np.maximum(penetration_depth(c, ev.prepared.size, float(ev.prepared.probe_radius)), 0.0)
     rate = np.gradient(depth, t) if t.size > 1 else np.zeros_like(depth)
     return depth, rate, c
 
@@ -265,8 +256,7 @@ class Nuisance:
         """The nuisance directions of the model (``fixed``, E) on train and validation."""
         tr, n_tr = nuisance_columns(ev, "train", fixed, E, names)
         va, n_va = nuisance_columns(ev, "validation", fixed, E, names)
-        keep = [i for i, n in enumerate(n_tr) if n in n_va]
-        if len(keep) != len(n_tr) or n_tr != n_va:  # a variant diverged on one role only
+        if n_tr != n_va:  # a variant diverged on one role only
             common = [n for n in dict.fromkeys(n_tr) if n in n_va]
             ti = [i for i, n in enumerate(n_tr) if n in common]
             vi = [i for i, n in enumerate(n_va) if n in common]

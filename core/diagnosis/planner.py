@@ -269,14 +269,7 @@ def _virtual_session(prepared: PreparedSession, path: ProbePath, rate: float, la
     """A session whose sequences follow ``path`` and whose "clouds" are one point at every
     bin centre (the signatures are differences of models; counts are set by the caller)."""
     t = np.arange(0.0, float(path.t[-1]) + 1e-9, 1.0 / rate)
-    pts = layout.centres3().copy()
-    normals = {"top": (2, -1.0), "-x": (0, 1.0), "+x": (0, -1.0), "-y": (1, 1.0), "+y": (1, -1.0)}
-    from core.diagnosis.fields import FACES
-
-    for i, f in enumerate(FACES[: len(layout.faces())]):
-        m = layout.face_of_bin() == i
-        axis, sign = normals[f]
-        pts[m, axis] += sign * 1e-5  # just inside, so the binning finds each face
+    pts = layout.centres3() - 1e-5 * layout.normals3()  # just inside, so the binning finds each face
     clouds = tuple(pts for _ in t)
     zeros = np.zeros((path.t.size, 3))
     seqs = {f"plan-{role}": PreparedSequence(f"plan-{role}", role, t, path, clouds, force=zeros)
@@ -394,7 +387,7 @@ def plan_experiment(
     moves = candidate_moves(size, radius, lim)
 
     # the session's camera coverage and noise
-    session_cfg = replace(cfg, fine_grid=None, coarse_dt=cfg.coarse_dt)
+    session_cfg = replace(cfg, fine_grid=None)
     layout = FieldLayout(tuple(float(v) for v in size), cfg.layout_bins, side_rows=cfg.side_rows)
     ev0 = Evidence(prepared, session_cfg, executor, layout)
     base_runs = ev0.runs([[]], "train")[0] + ev0.runs([[]], "validation")[0]
@@ -456,10 +449,8 @@ def plan_experiment(
         ranked = sorted(moves, key=lambda m: -per_move[m.name][k][0])
         if ranked and per_move[ranked[0].name][k][0] > 0 and ranked[0] not in chosen:
             chosen.append(ranked[0])
-    budget = lim.duration
-    chosen = [m for m in chosen]
     total = sum(m.duration for m in chosen)
-    while total > budget and len(chosen) > 1:
+    while total > lim.duration and len(chosen) > 1:
         total -= chosen.pop().duration
     if not chosen:
         chosen = [moves[0]]

@@ -11,10 +11,11 @@ import numpy as np
 from core.diagnosis.evidence import Evidence, FieldRun
 from core.diagnosis.fields import FACES, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
+from core.lab.probing import penetration_depth
 from core.simulation.effects import FitSpace
 from core.simulation.replay import PreparedSession
 
-__all__ = ["fit_fields", "identifiable", "blocks", "test_error", "gain_interval", "summary", "joint_youngs", "palpation"]
+__all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation"]
 
 
 def fit_fields(cand: FitSpace, fit: Fit) -> dict:
@@ -36,14 +37,6 @@ def identifiable(names: Sequence[str], x: np.ndarray, se: np.ndarray) -> dict:
             out[name[6:]] = bool(1.96 * s < 0.5)
         else:
             out[name] = bool(1.96 * s < 0.5 * max(abs(v), 1e-12))
-    return out
-
-
-def blocks(prepared: PreparedSession, names: list[str], block: float = 1.0) -> list[np.ndarray]:
-    out = []
-    for n in names:
-        t = prepared.sequences[n].frame_times
-        out.append(np.floor((t - t[0]) / block).astype(int))
     return out
 
 
@@ -153,9 +146,7 @@ def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:
         t = s.frame_times
         c = s.probe.at(t)
         seconds += float(t[-1] - t[0]) if t.size > 1 else 0.0
-        inside = np.clip(c, 0.0, size)
-        gap = np.linalg.norm(c - inside, axis=1)
-        pressed = gap < r - 0.0005
+        pressed = penetration_depth(c, size, r) > 0.0005
         beside = (c[:, 2] < size[2]) & ((c[:, 0] < 0) | (c[:, 0] > size[0]) | (c[:, 1] < 0) | (c[:, 1] > size[1]))
         edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
         ph = phase_labels(t, c, size, r)

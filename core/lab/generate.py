@@ -158,6 +158,16 @@ class LabConfig:
     recorded in truth.json under "lab_variation"; they override the fields above
     (``youngs_modulus_range`` included). None: the fields above, as they are."""
 
+    def with_duration(self, seconds: float) -> "LabConfig":
+        """This lab with every sequence ``seconds`` long (its roles unchanged).
+
+        Raises:
+            LabError: ``seconds`` is not positive.
+        """
+        if not float(seconds) > 0:
+            raise LabError(f"a sequence duration must be positive, got {seconds}")
+        return replace(self, sequence_durations=(float(seconds),) * len(self.sequence_roles))
+
 
 def _roles(n: int, n_val: int = 1, n_test: int = 2) -> tuple[str, ...]:
     return tuple(["validation"] * n_val + ["test"] * n_test + ["train"] * (n - n_val - n_test))

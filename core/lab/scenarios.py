@@ -71,7 +71,7 @@ def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConf
     """
     effects = hidden_effects(kind, seed)
     base = PRESETS[preset] if isinstance(preset, str) else preset
-    lab = replace(base, sequence_durations=(float(duration),) * len(base.sequence_roles))
+    lab = base.with_duration(duration)
     probing = lab.probing
     if kind == "inclusion":
         c = effects[0]["center"]

@@ -12,7 +12,6 @@ and none on many seeds.
 import contextlib
 import io
 import json
-from dataclasses import replace
 
 import pytest
 
@@ -24,7 +23,7 @@ from tests.diagnosis._hidden import check_contract, lab_session
 
 pytestmark = pytest.mark.slow  # whole diagnoses, 2-4 min each
 
-FIELD = replace(PRESETS["field"], sequence_durations=(SHORT_DURATION,) * len(PRESETS["field"].sequence_roles))
+FIELD = PRESETS["field"].with_duration(SHORT_DURATION)
 SEED = 11
 
 

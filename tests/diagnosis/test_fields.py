@@ -120,3 +120,15 @@ def test_every_candidate_start_is_a_valid_effect_with_the_format_parameters():
             assert e.kind == kind and set(c.to_parameters(x)) == fields
             assert np.all(c.clip(x) == x)
         assert len(c.names) == len(c.steps) == len(c.lower) == len(c.upper)
+
+
+def test_bin_normals_point_out_of_their_faces():
+    lay = FieldLayout(SIZE, (8, 4), side_rows=3)
+    n, c, face = lay.normals3(), lay.centres3(), lay.face_of_bin()
+    assert np.allclose(np.linalg.norm(n, axis=1), 1.0)
+    # a step along the normal leaves the box through the bin's own face, and no other bin takes it
+    out = c + 1e-4 * n
+    assert np.all(np.any((out < 0) | (out > np.asarray(SIZE)), axis=1))
+    assert np.array_equal(n[face == 0], np.tile([0.0, 0.0, 1.0], ((face == 0).sum(), 1)))
+    assert np.array_equal(n[face == 1], np.tile([-1.0, 0.0, 0.0], ((face == 1).sum(), 1)))
+    assert np.array_equal(lay.index(c - 1e-5 * n), np.arange(lay.n_bins))  # just inside: each bin finds itself
