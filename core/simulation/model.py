@@ -96,6 +96,9 @@ class SimulationConfig:
             friction acts as a stiff viscous stick.
         divergence_limit: a run is declared diverged when any node moves more than
             this many phantom diagonals from rest, or a value is not finite.
+        compiled: step implicit Euler in one compiled loop (:mod:`core.simulation.stepper`);
+            False runs the Python reference :func:`core.simulation.solver.step` (same
+            results to rounding; for tests and for reading).
     """
 
     dt: float = 1.0 / 120.0
@@ -111,6 +114,7 @@ class SimulationConfig:
     integrator: str = "implicit_euler"
     friction_slip_speed: float = 1e-3
     divergence_limit: float = 1.0
+    compiled: bool = True
 
     def __post_init__(self):
         if not (self.dt > 0 and np.isfinite(self.dt)):
@@ -220,9 +224,10 @@ class _BandedSPD:
         self.n = n
         self.bandwidth = band
         (self._pbtrs,) = sla.get_lapack_funcs(("pbtrs",), (self.cb,))
+        self.cbT = np.ascontiguousarray(self.cb.T)  # LAPACK's column-major band storage, for the compiled stepper
         self._slot = np.full(n, -1, dtype=np.int64)
         self._rows = np.zeros((0, n))  # cached rows of A^{-1} (A is symmetric)
-        self._used = 0
+        self._used = np.zeros(1, dtype=np.int64)  # slots in use (an array: the compiled stepper updates it)
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         # LAPACK dpbtrs directly: scipy's cho_solve_banded wrapper costs more than the solve.
@@ -236,16 +241,17 @@ class _BandedSPD:
         slots = self._slot[dofs]
         if np.any(slots < 0):
             missing = np.unique(dofs[slots < 0])
-            need = self._used + missing.size
+            used = int(self._used[0])
+            need = used + missing.size
             if need > self._rows.shape[0]:
                 grown = np.zeros((max(need, 2 * self._rows.shape[0], 32), self.n))
-                grown[: self._used] = self._rows[: self._used]
+                grown[:used] = self._rows[:used]
                 self._rows = grown
             E = np.zeros((self.n, missing.size))
             E[missing, np.arange(missing.size)] = 1.0
-            self._rows[self._used : need] = self.solve(E).T
-            self._slot[missing] = np.arange(self._used, need)
-            self._used = need
+            self._rows[used:need] = self.solve(E).T
+            self._slot[missing] = np.arange(used, need)
+            self._used[0] = need
             slots = self._slot[dofs]
         return self._rows[slots]
 

@@ -431,12 +431,10 @@ def simulate(
     # output j lies in (step_t[k-1], step_t[k]]
     k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
     limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
-    status, message = "ok", ""
-    prev_x, prev_f = state.x, np.zeros(3)
     j = 0
     free = model.free[:, None]
 
-    def record(j: int, x: np.ndarray) -> None:
+    def record(j: int, x: np.ndarray, st: State) -> None:
         """Store frame j; with a hook, shift the state's free nodes by its correction."""
         out_x[j] = x
         if frame_hook is None:
@@ -449,33 +447,20 @@ def simulate(
             raise SimulationError(f"frame_hook must return ({n_nodes}, 3) positions, got {new.shape}")
         delta = np.where(free, new - x, 0.0)
         out_x[j] = x + delta
-        state.x = state.x + delta
+        st.x = st.x + delta
 
     while j < times.size and k_of[j] == 0:
-        record(j, state.x)
+        record(j, state.x, state)
         out_f[j] = 0.0
         j += 1
-    report_every = max(n_steps // 50, 1)
-    for k in range(1, n_steps + 1):
-        vp = (centres[k] - centres[k - 1]) / dt
-        state, info = step(model, state, centres[k], probe_radius, vp)
-        # a blow-up grows geometrically: checking every 5th step (and the last) is enough
-        disp = np.abs(state.x - model.mesh.nodes).max() if (k % 5 == 0 or k == n_steps) else 0.0
-        if not np.isfinite(disp) or disp > limit:
-            status = "diverged"
-            message = (
-                f"diverged at t = {step_t[k]:.3f} s (step {k}): "
-                + ("non-finite positions" if not np.isfinite(disp) else f"node moved {disp * 1e3:.0f} mm")
-            )
-            break
-        while j < times.size and k_of[j] == k:
-            a = (times[j] - step_t[k - 1]) / dt
-            out_f[j] = (1 - a) * prev_f + a * info.contact_force
-            record(j, (1 - a) * prev_x + a * state.x)
-            j += 1
-        prev_x, prev_f = state.x, info.contact_force
-        if callback is not None and (k % report_every == 0 or k == n_steps):
-            callback(k / n_steps, f"step {k}/{n_steps}")
+    if _compilable(model):
+        _, k, status, message = _simulate_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f,
+                                                  probe_radius, limit, frame_hook, callback)
+        n_steps_taken = k
+    else:
+        k, status, message = _simulate_reference(model, state, centres, step_t, times, k_of, j, out_x, out_f,
+                                                probe_radius, limit, record, callback)
+        n_steps_taken = k
     return SimulationResult(
         times=times,
         positions=out_x,
@@ -484,6 +469,117 @@ def simulate(
         probe_radius=float(probe_radius),
         status=status,
         message=message,
-        steps=k if n_steps else 0,
+        steps=n_steps_taken if n_steps else 0,
         wall_time=time.perf_counter() - t_wall,
     )
+
+
+def _divergence_message(t: float, k: int, disp: float) -> str:
+    return (f"diverged at t = {t:.3f} s (step {k}): "
+            + ("non-finite positions" if not np.isfinite(disp) else f"node moved {disp * 1e3:.0f} mm"))
+
+
+def _compilable(model: Model) -> bool:
+    """Whether :mod:`core.simulation.stepper` runs this model (implicit Euler, Maxwell arms
+    as the only extra stress terms, ``config.compiled``)."""
+    from core.simulation.model import MaxwellArm
+
+    return (model.config.compiled and model.config.integrator == "implicit_euler" and model._factor is not None
+            and all(type(t) is MaxwellArm for t in model.terms))
+
+
+def _simulate_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, probe_radius, limit,
+                       frame_hook, callback):
+    """The time loop of :func:`simulate` in :func:`core.simulation.stepper.advance`;
+    returns (final state, last step, status, message)."""
+    from core.simulation import stepper
+
+    cfg, el, fac = model.config, model.elements, model._factor
+    dt = cfg.dt
+    n_steps = step_t.size - 1
+    x = np.ascontiguousarray(state.x, dtype=np.float64).copy()
+    v = np.ascontiguousarray(state.v, dtype=np.float64).copy()
+    q = np.ascontiguousarray(state.q, dtype=np.float64).copy()
+    n_el = model.mesh.n_tets
+    eps_v = (np.ascontiguousarray(np.stack(state.term_state)) if model.terms else np.zeros((0, 9, n_el)))
+    tau = np.array([t.tau for t in model.terms], dtype=np.float64)
+    kr = np.array([t.k for t in model.terms], dtype=np.float64)
+    law = {"corotational": 0, "stable_neo_hookean": 1, "stable_yeoh": 2}[model.material.law]
+    iters = cfg.polar_iterations if model.needs_rotation else 0
+    prev_x, prev_f, force = x.copy(), np.zeros(3), np.zeros(3)
+    pbtrs = stepper.lapack_pbtrs()
+    F = times.size
+    chunk = max(int(math.ceil(F / 50)), 1) if callback is not None else F
+    k, resume, status, message = 0, False, "ok", ""
+    while True:
+        j_stop = min(j + 1, F) if frame_hook is not None else min(j + chunk, F)
+        code, k, j, disp, rows = stepper.advance(
+            model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, law, float(model.material.stiffening), iters,
+            tau, kr, dt, cfg.rayleigh_mass, cfg.rayleigh_stiffness, cfg.newton_iterations, model.mass_dofs,
+            model.free_dofs, model.free_index, model.scratch_slot, np.ascontiguousarray(model.body_force, dtype=np.float64),
+            np.ascontiguousarray(model.support_stiffness, dtype=np.float64), model.mesh.nodes,
+            pbtrs, fac.cbT, fac._rows, fac._slot, fac._used,
+            model.mesh.surface_triangles, float(model.contact_stiffness), cfg.contact_margin, cfg.contact_iterations,
+            cfg.contact_tolerance, float(model.friction), cfg.friction_slip_speed,
+            centres, float(probe_radius), x, v, q, eps_v,
+            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force)
+        fac._rows = rows
+        if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):
+            status, message = "diverged", _divergence_message(step_t[k], k, disp)
+            break
+        if code == stepper.STATUS_STOPPED:
+            if frame_hook is not None:
+                _apply_hook(frame_hook, model, j - 1, times, out_x, x)
+            if callback is not None:
+                callback(k / max(n_steps, 1), f"step {k}/{n_steps}")
+            resume = True
+            continue
+        break
+    if callback is not None and status == "ok" and n_steps:
+        callback(1.0, f"step {n_steps}/{n_steps}")
+    term_state = tuple(np.array(eps_v[i]) for i in range(eps_v.shape[0]))
+    return State(x=x, v=v, q=q, term_state=term_state, t=float(step_t[k])), k, status, message
+
+
+def _apply_hook(frame_hook, model, j, times, out_x, x) -> None:
+    """The in-loop correction of frame ``j`` (see :func:`simulate`): ``out_x[j]`` and the
+    state's free nodes ``x`` (in place) shifted by the hook's change."""
+    cur = out_x[j]
+    new = frame_hook(j, float(times[j]), cur.copy())
+    if new is None:
+        return
+    new = np.asarray(new, dtype=np.float64)
+    if new.shape != cur.shape:
+        raise SimulationError(f"frame_hook must return ({cur.shape[0]}, 3) positions, got {new.shape}")
+    delta = np.where(model.free[:, None], new - cur, 0.0)
+    out_x[j] = cur + delta
+    x += delta
+
+
+def _simulate_reference(model, state, centres, step_t, times, k_of, j, out_x, out_f, probe_radius, limit, record,
+                        callback):
+    """The time loop of :func:`simulate` with the Python :func:`step` (the reference);
+    returns (last step, status, message)."""
+    dt = model.config.dt
+    n_steps = step_t.size - 1
+    prev_x, prev_f = state.x, np.zeros(3)
+    status, message = "ok", ""
+    k = 0
+    report_every = max(n_steps // 50, 1)
+    for k in range(1, n_steps + 1):
+        vp = (centres[k] - centres[k - 1]) / dt
+        state, info = step(model, state, centres[k], probe_radius, vp)
+        # a blow-up grows geometrically: checking every 5th step (and the last) is enough
+        disp = np.abs(state.x - model.mesh.nodes).max() if (k % 5 == 0 or k == n_steps) else 0.0
+        if not np.isfinite(disp) or disp > limit:
+            status, message = "diverged", _divergence_message(step_t[k], k, disp)
+            break
+        while j < times.size and k_of[j] == k:
+            a = (times[j] - step_t[k - 1]) / dt
+            out_f[j] = (1 - a) * prev_f + a * info.contact_force
+            record(j, (1 - a) * prev_x + a * state.x, state)
+            j += 1
+        prev_x, prev_f = state.x, info.contact_force
+        if callback is not None and (k % report_every == 0 or k == n_steps):
+            callback(k / n_steps, f"step {k}/{n_steps}")
+    return k, status, message

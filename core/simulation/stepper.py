@@ -1,0 +1,694 @@
+"""Compiled time stepping (numba): the whole implicit-Euler step of :mod:`core.simulation.solver`
+in one compiled loop.
+
+The Python :func:`core.simulation.solver.step` stays the readable reference: this module
+runs the same step (the same constant-Jacobian Newton corrections, the same active-set
+contact solve with the Woodbury identity on cached rows of the inverse, the same
+regularised Coulomb friction) without the interpreter between its pieces. On the paper's
+13 x 5 x 5 grid the interpreter's glue (array slicing, small allocations, einsum calls)
+cost more than the element forces and the banded solve together; the tests check that
+both give the same trajectories and forces.
+
+The banded Cholesky solves call LAPACK's ``dpbtrs`` (scipy's ``cython_lapack``) through
+a function pointer that is passed in as an argument, which keeps every kernel in numba's
+on-disk cache. Per-element 3x3 fields are element-major (E, 9) here.
+
+Layout of the arrays (all float64 unless stated; N nodes, E tetrahedra, n free dofs):
+
+- ``x, v``: (N, 3) positions (m) and velocities (m/s), phantom frame;
+- ``q``: (4, E) rotation quaternions (x, y, z, w), the polar decomposition's warm start;
+- ``eps_v``: (T, 9, E) viscous strains of the T Maxwell arms (component-major, as the
+  model's ``State.term_state``);
+- ``cbT``: (n, kd + 1) the upper banded Cholesky factor of the system matrix, LAPACK's
+  column-major band storage seen as a C array (``scipy.linalg.cholesky_banded(...).T``);
+- ``rows``: (cap, n) cached rows of the inverse of the system matrix, ``slot`` (n,) int64
+  their slot per free dof (-1: not cached), ``used`` (1,) int64 slots in use.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+
+import numpy as np
+from numba import njit
+
+from core.simulation.kernels import constraint_matrix, sphere_contacts
+
+__all__ = ["lapack_pbtrs", "advance", "band_solve", "STATUS_OK", "STATUS_STOPPED", "STATUS_NONFINITE", "STATUS_TOO_FAR"]
+
+STATUS_OK = 0
+"""Every step was taken."""
+STATUS_STOPPED = 1
+"""Stopped after recording the requested frame (an in-loop correction follows)."""
+STATUS_NONFINITE = 2
+"""Diverged: a position became non-finite."""
+STATUS_TOO_FAR = 3
+"""Diverged: a node moved further from rest than the divergence limit."""
+
+_FM = {"contract", "arcp", "nsz", "reassoc"}
+_PBTRS = None
+
+
+def lapack_pbtrs():
+    """LAPACK ``dpbtrs`` (banded Cholesky solve) as a ctypes function of nine pointers,
+    from scipy's ``cython_lapack``; pass it to the kernels of this module."""
+    global _PBTRS
+    if _PBTRS is None:
+        from numba.extending import get_cython_function_address
+
+        addr = get_cython_function_address("scipy.linalg.cython_lapack", "dpbtrs")
+        _PBTRS = ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * 9))(addr)
+    return _PBTRS
+
+
+@njit(cache=True)
+def band_solve(pbtrs, cbT, b):
+    """Solve ``A X = B`` in place for the C-order (nrhs, n) right-hand sides ``b`` with the
+    banded Cholesky factor ``cbT`` (see the module docstring). Returns LAPACK's info."""
+    n = cbT.shape[0]
+    kd = cbT.shape[1] - 1
+    nrhs = b.size // n if n > 0 else 0
+    if n == 0 or nrhs == 0:
+        return 0
+    uplo = np.array([85], dtype=np.uint8)  # 'U'
+    iw = np.array([n, kd, nrhs, kd + 1, n, 0], dtype=np.int32)
+    pbtrs(uplo.ctypes, iw[0:].ctypes, iw[1:].ctypes, iw[2:].ctypes, cbT.ctypes, iw[3:].ctypes, b.ctypes,
+          iw[4:].ctypes, iw[5:].ctypes)
+    return iw[5]
+
+
+@njit(cache=True)
+def _ensure_rows(pbtrs, cbT, rows, slot, used, dofs):
+    """Make sure the rows of the inverse for the free ``dofs`` are cached; returns the
+    (possibly grown) ``rows`` buffer."""
+    n = cbT.shape[0]
+    miss = np.empty(dofs.size, dtype=np.int64)
+    m = 0
+    for d in dofs:
+        if slot[d] < 0:
+            dup = False
+            for i in range(m):
+                if miss[i] == d:
+                    dup = True
+                    break
+            if not dup:
+                miss[m] = d
+                m += 1
+    if m == 0:
+        return rows
+    need = used[0] + m
+    if need > rows.shape[0]:
+        grown = np.zeros((max(need, 2 * rows.shape[0], 32), n))
+        grown[: used[0]] = rows[: used[0]]
+        rows = grown
+    E = np.zeros((m, n))
+    for i in range(m):
+        E[i, miss[i]] = 1.0
+    band_solve(pbtrs, cbT, E)
+    for i in range(m):
+        rows[used[0] + i] = E[i]
+        slot[miss[i]] = used[0] + i
+    used[0] = need
+    return rows
+
+
+@njit(cache=True, fastmath=_FM)
+def _quat_mat(qx, qy, qz, qw, R):
+    xx, yy, zz = qx * qx, qy * qy, qz * qz
+    xy, xz, yz = qx * qy, qx * qz, qy * qz
+    wx, wy, wz = qw * qx, qw * qy, qw * qz
+    R[0] = 1 - 2 * (yy + zz)
+    R[1] = 2 * (xy - wz)
+    R[2] = 2 * (xz + wy)
+    R[3] = 2 * (xy + wz)
+    R[4] = 1 - 2 * (xx + zz)
+    R[5] = 2 * (yz - wx)
+    R[6] = 2 * (xz - wy)
+    R[7] = 2 * (yz + wx)
+    R[8] = 1 - 2 * (xx + yy)
+
+
+@njit(cache=True, fastmath=_FM)
+def _polar(F, q, e, iterations, R):
+    """Warm-started Newton iterations on the polar decomposition of F (9,) from q[:, e]
+    (updated in place); R receives the rotation. Same iteration as
+    :func:`core.simulation.kernels.element_forces`."""
+    qx, qy, qz, qw = q[0, e], q[1, e], q[2, e], q[3, e]
+    for _ in range(iterations):
+        _quat_mat(qx, qy, qz, qw, R)
+        b00 = R[0] * F[0] + R[3] * F[3] + R[6] * F[6]
+        b01 = R[0] * F[1] + R[3] * F[4] + R[6] * F[7]
+        b02 = R[0] * F[2] + R[3] * F[5] + R[6] * F[8]
+        b10 = R[1] * F[0] + R[4] * F[3] + R[7] * F[6]
+        b11 = R[1] * F[1] + R[4] * F[4] + R[7] * F[7]
+        b12 = R[1] * F[2] + R[4] * F[5] + R[7] * F[8]
+        b20 = R[2] * F[0] + R[5] * F[3] + R[8] * F[6]
+        b21 = R[2] * F[1] + R[5] * F[4] + R[8] * F[7]
+        b22 = R[2] * F[2] + R[5] * F[5] + R[8] * F[8]
+        v0 = b21 - b12
+        v1 = b02 - b20
+        v2 = b10 - b01
+        tr = b00 + b11 + b22
+        s01 = 0.5 * (b01 + b10)
+        s02 = 0.5 * (b02 + b20)
+        s12 = 0.5 * (b12 + b21)
+        m00 = tr - b00
+        m11 = tr - b11
+        m22 = tr - b22
+        c00 = m11 * m22 - s12 * s12
+        c01 = s02 * s12 + s01 * m22
+        c02 = s01 * s12 + s02 * m11
+        det = m00 * c00 - s01 * c01 - s02 * c02
+        if tr > 1e-6 and det > 1e-6 * tr * tr * tr:
+            c11 = m00 * m22 - s02 * s02
+            c12 = m00 * s12 + s01 * s02
+            c22 = m00 * m11 - s01 * s01
+            inv = 1.0 / det
+            t0 = (c00 * v0 + c01 * v1 + c02 * v2) * inv
+            t1 = (c01 * v0 + c11 * v1 + c12 * v2) * inv
+            t2 = (c02 * v0 + c12 * v1 + c22 * v2) * inv
+        else:
+            inv = 1.0 / (abs(tr) + 1e-9)
+            t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
+        ang2 = t0 * t0 + t1 * t1 + t2 * t2
+        if ang2 > 1.0:
+            sc = 1.0 / np.sqrt(ang2)
+            t0, t1, t2 = t0 * sc, t1 * sc, t2 * sc
+        if ang2 < 1e-28:
+            break
+        x1, y1, z1 = 0.5 * t0, 0.5 * t1, 0.5 * t2
+        nx_ = qw * x1 + qx + qy * z1 - qz * y1
+        ny_ = qw * y1 - qx * z1 + qy + qz * x1
+        nz_ = qw * z1 + qx * y1 - qy * x1 + qz
+        nw_ = qw - qx * x1 - qy * y1 - qz * z1
+        nrm = 1.0 / np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_ + nw_ * nw_)
+        qx, qy, qz, qw = nx_ * nrm, ny_ * nrm, nz_ * nrm, nw_ * nrm
+    q[0, e], q[1, e], q[2, e], q[3, e] = qx, qy, qz, qw
+    _quat_mat(qx, qy, qz, qw, R)
+
+
+@njit(cache=True, fastmath=_FM)
+def _pk1(law, F, R, mu, lam, stiffening, P):
+    """First Piola-Kirchhoff stress of the element's law into P (9,), Pa."""
+    if law == 0:
+        tr = -3.0
+        for c in range(9):
+            tr += R[c] * F[c]
+        for c in range(9):
+            P[c] = 2.0 * mu * (F[c] - R[c]) + lam * tr * R[c]
+        return
+    f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
+    c0 = f4 * f8 - f5 * f7
+    c1 = f5 * f6 - f3 * f8
+    c2 = f3 * f7 - f4 * f6
+    c3 = f2 * f7 - f1 * f8
+    c4 = f0 * f8 - f2 * f6
+    c5 = f1 * f6 - f0 * f7
+    c6 = f1 * f5 - f2 * f4
+    c7 = f2 * f3 - f0 * f5
+    c8 = f0 * f4 - f1 * f3
+    J = f0 * c0 + f1 * c1 + f2 * c2
+    lam_s = lam + mu
+    g = lam_s * (J - (1.0 + mu / lam_s))
+    m = mu
+    if law == 2:
+        ic = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8
+        hy = 2.0 * stiffening * mu * (ic - 1.0 - 2.0 * J)
+        m = mu + hy
+        g = g - hy
+    P[0] = m * f0 + g * c0
+    P[1] = m * f1 + g * c1
+    P[2] = m * f2 + g * c2
+    P[3] = m * f3 + g * c3
+    P[4] = m * f4 + g * c4
+    P[5] = m * f5 + g * c5
+    P[6] = m * f6 + g * c6
+    P[7] = m * f7 + g * c7
+    P[8] = m * f8 + g * c8
+
+
+@njit(cache=True, fastmath=_FM)
+def _forces(x, v, tets, grad_n, volume, mu, lam, law, stiffening, q, iterations, beta,
+            term_tau, term_k, eps_v, eps_v_new, dt, f):
+    """Internal nodal forces (N, 3), N, into ``f`` (zeroed here): the law's stress, the
+    Maxwell arms' (their new viscous strains into ``eps_v_new``) and the Rayleigh
+    stiffness damping ``-beta K0 v``; ``q`` is updated in place (warm start)."""
+    n_el = tets.shape[0]
+    n_terms = term_tau.size
+    f[:] = 0.0
+    xa = np.empty((4, 3))
+    va = np.empty((4, 3))
+    F = np.empty(9)
+    R = np.empty(9)
+    P = np.empty(9)
+    H = np.empty(9)
+    eps = np.empty(9)
+    for e in range(n_el):
+        for a in range(4):
+            nd = tets[e, a]
+            for i in range(3):
+                xa[a, i] = x[nd, i]
+                va[a, i] = v[nd, i]
+        for i in range(3):
+            for k in range(3):
+                F[3 * i + k] = (xa[0, i] * grad_n[e, 0, k] + xa[1, i] * grad_n[e, 1, k]
+                                + xa[2, i] * grad_n[e, 2, k] + xa[3, i] * grad_n[e, 3, k])
+        if iterations > 0:
+            _polar(F, q, e, iterations, R)
+        else:
+            for c in range(9):
+                R[c] = 0.0
+            R[0] = 1.0
+            R[4] = 1.0
+            R[8] = 1.0
+        _pk1(law, F, R, mu[e], lam[e], stiffening, P)
+        if n_terms > 0:
+            # corotated small strain sym(R^T F) - I
+            for i in range(3):
+                for k in range(3):
+                    eps[3 * i + k] = R[i] * F[k] + R[3 + i] * F[3 + k] + R[6 + i] * F[6 + k]
+            for i in range(3):
+                for k in range(i + 1, 3):
+                    s = 0.5 * (eps[3 * i + k] + eps[3 * k + i])
+                    eps[3 * i + k] = s
+                    eps[3 * k + i] = s
+            eps[0] -= 1.0
+            eps[4] -= 1.0
+            eps[8] -= 1.0
+            for t in range(n_terms):
+                h = dt / term_tau[t]
+                sc = term_k[t] / (1.0 + h)
+                # sigma = sc * (2 mu (eps - eps_v) + lam tr(eps - eps_v) I), then P += R sigma
+                trd = 0.0
+                for c in (0, 4, 8):
+                    trd += eps[c] - eps_v[t, c, e]
+                for c in range(9):
+                    H[c] = sc * 2.0 * mu[e] * (eps[c] - eps_v[t, c, e])
+                    eps_v_new[t, c, e] = (eps_v[t, c, e] + h * eps[c]) / (1.0 + h)
+                H[0] += sc * lam[e] * trd
+                H[4] += sc * lam[e] * trd
+                H[8] += sc * lam[e] * trd
+                for i in range(3):
+                    for k in range(3):
+                        P[3 * i + k] += R[3 * i] * H[k] + R[3 * i + 1] * H[3 + k] + R[3 * i + 2] * H[6 + k]
+        if beta > 0.0:
+            for i in range(3):
+                for k in range(3):
+                    H[3 * i + k] = (va[0, i] * grad_n[e, 0, k] + va[1, i] * grad_n[e, 1, k]
+                                    + va[2, i] * grad_n[e, 2, k] + va[3, i] * grad_n[e, 3, k])
+            trh = H[0] + H[4] + H[8]
+            bm = beta * mu[e]
+            for i in range(3):
+                for k in range(3):
+                    P[3 * i + k] += bm * (H[3 * i + k] + H[3 * k + i])
+                P[4 * i] += beta * lam[e] * trh
+        V = volume[e]
+        for a in range(4):
+            nd = tets[e, a]
+            g0, g1, g2 = grad_n[e, a, 0], grad_n[e, a, 1], grad_n[e, a, 2]
+            f[nd, 0] -= V * (P[0] * g0 + P[1] * g1 + P[2] * g2)
+            f[nd, 1] -= V * (P[3] * g0 + P[4] * g1 + P[5] * g2)
+            f[nd, 2] -= V * (P[6] * g0 + P[7] * g1 + P[8] * g2)
+
+
+@njit(cache=True)
+def _gaps(cnodes, cW, cN, sel, x, centre, radius, out):
+    """Penetration ``r - n.(sum_j w_j x_j - centre)`` of the contacts ``sel`` along their
+    frozen normals at positions ``x`` into ``out`` (> 0 inside)."""
+    for i in range(sel.size):
+        c = sel[i]
+        s = 0.0
+        for d in range(3):
+            p = cW[c, 0] * x[cnodes[c, 0], d] + cW[c, 1] * x[cnodes[c, 1], d] + cW[c, 2] * x[cnodes[c, 2], d]
+            s += cN[c, d] * (p - centre[d])
+        out[i] = radius - s
+
+
+@njit(cache=True)
+def _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, omega, beta, w_out):
+    """The Woodbury solve of ``(A + H diag(omega) H^T) d = r + H beta`` (``H = E_uniq C``)
+    reduced to its correction: ``d = y + rows[uniq]^T w`` with ``y = A^-1 r``; ``w`` (m,)
+    is written into ``w_out``. Returns the (possibly grown) ``rows``."""
+    m = uniq.size
+    k = omega.size
+    rows = _ensure_rows(pbtrs, cbT, rows, slot, used, uniq)
+    if m == 0 or k == 0:
+        for i in range(m):
+            w_out[i] = 0.0
+        return rows
+    s = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        s[i] = slot[uniq[i]]
+    Auu = np.empty((m, m))
+    for i in range(m):
+        for j in range(m):
+            Auu[i, j] = rows[s[i], uniq[j]]
+    u = C @ beta
+    yu = np.empty(m)
+    for j in range(m):
+        yu[j] = y[uniq[j]]
+    yu += Auu.T @ u
+    S = C.T @ (Auu @ C)
+    for c in range(k):
+        S[c, c] += 1.0 / omega[c]
+    t = np.linalg.solve(S, C.T @ yu)
+    w = u - C @ t
+    for i in range(m):
+        w_out[i] = w[i]
+    return rows
+
+
+@njit(cache=True)
+def _apply(rows, slot, y, uniq, w, dofs, out):
+    """``out[i] = y[dofs[i]] + sum_j w_j rows[slot[uniq_j], dofs[i]]`` (dofs: free indices)."""
+    for i in range(dofs.size):
+        out[i] = y[dofs[i]]
+    for j in range(uniq.size):
+        wj = w[j]
+        if wj == 0.0:
+            continue
+        r = rows[slot[uniq[j]]]
+        for i in range(dofs.size):
+            out[i] += wj * r[dofs[i]]
+
+
+@njit(cache=True)
+def _apply_full(rows, slot, y, uniq, w, out):
+    out[:] = y
+    for j in range(uniq.size):
+        wj = w[j]
+        if wj == 0.0:
+            continue
+        r = rows[slot[uniq[j]]]
+        for i in range(out.size):
+            out[i] += wj * r[i]
+
+
+@njit(cache=True)
+def _tangents(n):
+    """Two unit tangents of each normal (k, 3), as ``solver._tangents``."""
+    k = n.shape[0]
+    t1 = np.empty((k, 3))
+    t2 = np.empty((k, 3))
+    for c in range(k):
+        if abs(n[c, 0]) < 0.9:
+            a0, a1, a2 = 1.0, 0.0, 0.0
+        else:
+            a0, a1, a2 = 0.0, 1.0, 0.0
+        u0 = n[c, 1] * a2 - n[c, 2] * a1
+        u1 = n[c, 2] * a0 - n[c, 0] * a2
+        u2 = n[c, 0] * a1 - n[c, 1] * a0
+        nr = math.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+        u0, u1, u2 = u0 / nr, u1 / nr, u2 / nr
+        t1[c, 0], t1[c, 1], t1[c, 2] = u0, u1, u2
+        t2[c, 0] = n[c, 1] * u2 - n[c, 2] * u1
+        t2[c, 1] = n[c, 2] * u0 - n[c, 0] * u2
+        t2[c, 2] = n[c, 0] * u1 - n[c, 1] * u0
+    return t1, t2
+
+
+@njit(cache=True)
+def _point_velocity(cnodes, cW, c, v):
+    p0 = cW[c, 0] * v[cnodes[c, 0], 0] + cW[c, 1] * v[cnodes[c, 1], 0] + cW[c, 2] * v[cnodes[c, 2], 0]
+    p1 = cW[c, 0] * v[cnodes[c, 0], 1] + cW[c, 1] * v[cnodes[c, 1], 1] + cW[c, 2] * v[cnodes[c, 2], 1]
+    p2 = cW[c, 0] * v[cnodes[c, 0], 2] + cW[c, 1] * v[cnodes[c, 1], 2] + cW[c, 2] * v[cnodes[c, 2], 2]
+    return p0, p1, p2
+
+
+@njit(cache=True)
+def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
+          dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X,
+          pbtrs, cbT, rows, slot, used,
+          tris, kc, margin, contact_iterations, tolerance, friction, slip_speed,
+          centre, radius, vp, x, v, q, eps_v, force_out):
+    """One implicit-Euler step (see :func:`core.simulation.solver.step`), in place on
+    ``x, v, q, eps_v``; the probe's force on the phantom (3,) N into ``force_out``.
+    Returns ``(rows, number of active contacts)``."""
+    N = x.shape[0]
+    nf = free_dofs.size
+    x0 = x.copy()
+    v0 = v.copy()
+    vg = v.copy()
+    q0 = q.copy()
+    eps_new = np.empty_like(eps_v)
+    f = np.empty((N, 3))
+    xp = np.empty((N, 3))
+    r = np.empty(nf)
+    dv_full = np.empty(nf)
+    has_body = np.any(body_force != 0.0)
+    has_support = np.any(support != 0.0)
+    # candidate contacts (frozen at the first correction's positions)
+    cidx = np.zeros(0, dtype=np.int64)
+    cW = np.zeros((0, 3))
+    cN = np.zeros((0, 3))
+    cA = np.zeros(0)
+    cnodes = np.zeros((0, 3), dtype=np.int64)
+    active = np.zeros(0, dtype=np.bool_)
+    sel = np.zeros(0, dtype=np.int64)  # the contacts of the last pass
+    n_blocks = 1
+    # friction rows of the last correction: (k_t,) contact index, direction, omega
+    fr_c = np.zeros(0, dtype=np.int64)
+    fr_dir = np.zeros((0, 3))
+    fr_om = np.zeros(0)
+    x_try = np.empty((N, 3))
+    for it in range(newton_iterations):
+        for i in range(N):
+            for d in range(3):
+                xp[i, d] = x0[i, d] + dt * vg[i, d]
+        q[:] = q0
+        _forces(xp, vg, tets, grad_n, volume, mu, lam, law, stiffening, q, polar_iterations, beta,
+                term_tau, term_k, eps_v, eps_new, dt, f)
+        if has_body:
+            f += body_force
+        if has_support:
+            for i in range(N):
+                for d in range(3):
+                    f[i, d] -= support[i] * (xp[i, d] - X[i, d])
+        for j in range(nf):
+            dof = free_dofs[j]
+            i, d = dof // 3, dof % 3
+            m = mass3[dof]
+            r[j] = dt * (f[i, d] - alpha * m * vg[i, d]) - m * (vg[i, d] - v0[i, d])
+        if it == 0:
+            cidx, cW, cN, _, cA = sphere_contacts(xp, tris, centre, radius + margin)
+            cnodes = np.empty((cidx.size, 3), dtype=np.int64)
+            for c in range(cidx.size):
+                for j in range(3):
+                    cnodes[c, j] = tris[cidx[c], j]
+            allc = np.arange(cidx.size)
+            g0 = np.empty(cidx.size)
+            _gaps(cnodes, cW, cN, allc, xp, centre, radius, g0)
+            active = g0 > 0.0
+        nc = cidx.size
+        y = r.copy()
+        band_solve(pbtrs, cbT, y)
+        # free dofs of the candidates' nodes: where the active-set passes need the solution
+        cd = np.empty(9 * nc, dtype=np.int64)
+        ncd = 0
+        for c in range(nc):
+            for j in range(3):
+                for d in range(3):
+                    fi = free_index[3 * cnodes[c, j] + d]
+                    if fi >= 0 and scratch[fi] < 0:
+                        scratch[fi] = ncd
+                        cd[ncd] = fi
+                        ncd += 1
+        cd = cd[:ncd]
+        for i in range(ncd):
+            scratch[cd[i]] = -1
+        dv_c = np.empty(ncd)
+        allc = np.arange(nc)
+        g = np.empty(nc)
+        w = np.zeros(0)
+        uniq = np.zeros(0, dtype=np.int64)
+        x_try[:] = xp
+        for _ in range(contact_iterations):
+            sel = np.flatnonzero(active)
+            k = sel.size
+            om = np.empty(k)
+            bc = np.empty(k)
+            gs = np.empty(k)
+            _gaps(cnodes, cW, cN, sel, xp, centre, radius, gs)
+            for i in range(k):
+                om[i] = dt * dt * kc * cA[sel[i]]
+                bc[i] = dt * kc * cA[sel[i]] * gs[i]
+            uniq, C = constraint_matrix(cnodes[sel], cW[sel], cN[sel], free_index, scratch)
+            w = np.empty(uniq.size)
+            rows = _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
+            if nc == 0:
+                break
+            _apply(rows, slot, y, uniq, w, cd, dv_c)
+            x_try[:] = xp
+            for i in range(ncd):
+                dof = free_dofs[cd[i]]
+                x_try[dof // 3, dof % 3] += dt * dv_c[i]
+            _gaps(cnodes, cW, cN, allc, x_try, centre, radius, g)
+            changed = False
+            for c in range(nc):
+                if (active[c] and g[c] < 0.0) or ((not active[c]) and g[c] > tolerance):
+                    changed = True
+                    break
+            if not changed:
+                break
+            for c in range(nc):
+                if (active[c] and g[c] < 0.0) or ((not active[c]) and g[c] > tolerance):
+                    active[c] = not active[c]
+        k = sel.size
+        fr_c = np.zeros(0, dtype=np.int64)
+        if friction > 0.0 and k > 0:
+            # Coulomb friction bounded by the normal force this step's contact solve found
+            gt = np.empty(k)
+            _gaps(cnodes, cW, cN, sel, x_try, centre, radius, gt)
+            gs = np.empty(k)
+            _gaps(cnodes, cW, cN, sel, xp, centre, radius, gs)
+            nsel = cN[sel]
+            t1, t2 = _tangents(nsel)
+            wt = np.empty(k)
+            for i in range(k):
+                c = sel[i]
+                fn = kc * cA[c] * max(gt[i], 0.0)
+                p0, p1, p2 = _point_velocity(cnodes, cW, c, vg)
+                r0, r1, r2 = p0 - vp[0], p1 - vp[1], p2 - vp[2]
+                rn = r0 * cN[c, 0] + r1 * cN[c, 1] + r2 * cN[c, 2]
+                r0, r1, r2 = r0 - rn * cN[c, 0], r1 - rn * cN[c, 1], r2 - rn * cN[c, 2]
+                speed = max(math.sqrt(r0 * r0 + r1 * r1 + r2 * r2), slip_speed)
+                wt[i] = dt * friction * fn / speed
+            keep = np.flatnonzero(wt > 0.0)
+            kt = keep.size
+            kk = k + 2 * kt
+            bn = np.empty((kk, 3), dtype=np.int64)
+            bw = np.empty((kk, 3))
+            bd = np.empty((kk, 3))
+            om = np.empty(kk)
+            bc = np.empty(kk)
+            fr_c = np.empty(2 * kt, dtype=np.int64)
+            fr_dir = np.empty((2 * kt, 3))
+            fr_om = np.empty(2 * kt)
+            for i in range(k):
+                c = sel[i]
+                bn[i] = cnodes[c]
+                bw[i] = cW[c]
+                bd[i] = cN[c]
+                om[i] = dt * dt * kc * cA[c]
+                bc[i] = dt * kc * cA[c] * gs[i]
+            for tt in range(2):
+                for jj in range(kt):
+                    i = keep[jj]
+                    c = sel[i]
+                    row = k + tt * kt + jj
+                    tv = t1[i] if tt == 0 else t2[i]
+                    p0, p1, p2 = _point_velocity(cnodes, cW, c, vg)
+                    bn[row] = cnodes[c]
+                    bw[row] = cW[c]
+                    bd[row] = tv
+                    om[row] = wt[i]
+                    bc[row] = wt[i] * (tv[0] * vp[0] + tv[1] * vp[1] + tv[2] * vp[2]
+                                       - (tv[0] * p0 + tv[1] * p1 + tv[2] * p2))
+                    fr_c[tt * kt + jj] = c
+                    fr_dir[tt * kt + jj] = tv
+                    fr_om[tt * kt + jj] = wt[i]
+            uniq, C = constraint_matrix(bn, bw, bd, free_index, scratch)
+            w = np.empty(uniq.size)
+            rows = _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
+        _apply_full(rows, slot, y, uniq, w, dv_full)
+        for j in range(nf):
+            dof = free_dofs[j]
+            vg[dof // 3, dof % 3] += dv_full[j]
+    for i in range(N):
+        for d in range(3):
+            x[i, d] = x0[i, d] + dt * vg[i, d]
+            v[i, d] = vg[i, d]
+    if eps_v.size:
+        eps_v[:] = eps_new
+    # the probe's force: penalty of the last contacts at the new positions, plus friction
+    force_out[:] = 0.0
+    k = sel.size
+    if k > 0:
+        gn = np.empty(k)
+        _gaps(cnodes, cW, cN, sel, x, centre, radius, gn)
+        for i in range(k):
+            c = sel[i]
+            fn = kc * cA[c] * max(gn[i], 0.0)
+            for d in range(3):
+                force_out[d] += fn * cN[c, d]
+        for i in range(fr_c.size):
+            c = fr_c[i]
+            p0, p1, p2 = _point_velocity(cnodes, cW, c, v)
+            rel = (fr_dir[i, 0] * (vp[0] - p0) + fr_dir[i, 1] * (vp[1] - p1) + fr_dir[i, 2] * (vp[2] - p2))
+            for d in range(3):
+                force_out[d] += (fr_om[i] / dt) * rel * fr_dir[i, d]
+    return rows, k
+
+
+@njit(cache=True)
+def advance(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
+            dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X,
+            pbtrs, cbT, rows, slot, used,
+            tris, kc, margin, contact_iterations, tolerance, friction, slip_speed,
+            centres, radius, x, v, q, eps_v,
+            times, step_t, k_of, k_begin, resume, j_begin, j_stop, out_x, out_f, prev_x, prev_f,
+            limit, force):
+    """Step from step ``k_begin`` (already taken when ``resume``: its pending frames are
+    recorded first) until every step is taken or frame ``j_stop - 1`` is recorded.
+
+    Frames ``j`` with ``k_of[j] == k`` are interpolated between the states before and
+    after step ``k`` into ``out_x`` (F, N, 3) and ``out_f`` (F, 3); ``prev_x``/``prev_f``
+    hold the state before the current step (updated in place). Divergence is checked on
+    every fifth step and the last, as in :func:`core.simulation.solver.simulate`.
+
+    Returns:
+        (status, last step taken, next frame to record, largest displacement from rest
+        (m) at the last check, rows).
+    """
+    n_steps = step_t.size - 1
+    F = times.size
+    j = j_begin
+    k = k_begin
+    disp = 0.0
+    if resume:
+        while j < F and k_of[j] == k:
+            a = (times[j] - step_t[k - 1]) / dt
+            out_f[j] = (1 - a) * prev_f + a * force
+            out_x[j] = (1 - a) * prev_x + a * x
+            j += 1
+            if j >= j_stop:
+                prev_x[:] = x
+                prev_f[:] = force
+                return STATUS_STOPPED, k, j, disp, rows
+        prev_x[:] = x
+        prev_f[:] = force
+    vp = np.empty(3)
+    for kk in range(k + 1, n_steps + 1):
+        k = kk
+        for d in range(3):
+            vp[d] = (centres[k, d] - centres[k - 1, d]) / dt
+        rows, _ = _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
+                        dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support,
+                        X, pbtrs, cbT, rows, slot, used, tris, kc, margin, contact_iterations, tolerance, friction,
+                        slip_speed, centres[k], radius, vp, x, v, q, eps_v, force)
+        if k % 5 == 0 or k == n_steps:
+            disp = 0.0
+            finite = True
+            for i in range(x.shape[0]):
+                for d in range(3):
+                    val = x[i, d]
+                    if not np.isfinite(val):
+                        finite = False
+                    dd = abs(val - X[i, d])
+                    if dd > disp:
+                        disp = dd
+            if not finite:
+                return STATUS_NONFINITE, k, j, math.inf, rows
+            if disp > limit:
+                return STATUS_TOO_FAR, k, j, disp, rows
+        while j < F and k_of[j] == k:
+            a = (times[j] - step_t[k - 1]) / dt
+            out_f[j] = (1 - a) * prev_f + a * force
+            out_x[j] = (1 - a) * prev_x + a * x
+            j += 1
+            if j >= j_stop:
+                return STATUS_STOPPED, k, j, disp, rows
+        prev_x[:] = x
+        prev_f[:] = force
+    return STATUS_OK, k, j, disp, rows
