@@ -23,9 +23,11 @@ points has variance ``sigma^2 / n`` under noise alone.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 
 __all__ = ["FieldLayout", "FACES", "face_residuals", "frame_bins", "residual_field", "phase_labels", "PHASES"]
@@ -195,24 +197,38 @@ def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: 
     nodes = pos.reshape(pos.shape[0], g[0], g[1], g[2], 3)
     sl = [slice(None)] * 4
     sl[1 + axis] = -1 if high else 0
-    fn = nodes[tuple(sl)]  # (F, n_u, n_v, 3): the remaining axes keep their order u < v
-    nu, nv = g[u], g[v]
-    hu, hv = size[u] / (nu - 1), size[v] / (nv - 1)
-    f = np.asarray(frames, dtype=np.int64)
-
-    def interp(fld, a, b):
-        s, t = a / hu, b / hv
-        i = np.clip(np.floor(s).astype(int), 0, nu - 2)
-        j = np.clip(np.floor(t).astype(int), 0, nv - 2)
-        wa, wb = s - i, t - j
-        return ((1 - wa) * (1 - wb) * fld[f, i, j] + wa * (1 - wb) * fld[f, i + 1, j]
-                + (1 - wa) * wb * fld[f, i, j + 1] + wa * wb * fld[f, i + 1, j + 1])
-
-    p = np.asarray(points, dtype=np.float64)
-    a = p[:, u] - interp(fn[..., u] - np.linspace(0, size[u], nu)[None, :, None], p[:, u], p[:, v])
-    b = p[:, v] - interp(fn[..., v] - np.linspace(0, size[v], nv)[None, None, :], p[:, u], p[:, v])
-    r = p[:, axis] - interp(fn[..., axis], a, b)
+    fn = np.ascontiguousarray(nodes[tuple(sl)])  # (F, n_u, n_v, 3): the remaining axes keep their order u < v
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    r = _face_residuals(p, fn, np.asarray(frames, dtype=np.int64), u, v, axis, float(size[u]), float(size[v]))
     return r if high else -r
+
+
+@njit(cache=True)
+def _face_residuals(p, fn, f, u, v, axis, su, sv):
+    """The bilinear face interpolation of :func:`face_residuals`, compiled: per point, the
+    in-plane motion of its rest cell corrected to first order, then the normal residual."""
+    nu, nv = fn.shape[1], fn.shape[2]
+    hu, hv = su / (nu - 1), sv / (nv - 1)
+    out = np.empty(p.shape[0])
+    for m in range(p.shape[0]):
+        fr = f[m]
+        pu, pv = p[m, u], p[m, v]
+        i = min(max(int(math.floor(pu / hu)), 0), nu - 2)
+        j = min(max(int(math.floor(pv / hv)), 0), nv - 2)
+        wa, wb = pu / hu - i, pv / hv - j
+        w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
+        du = (w00 * (fn[fr, i, j, u] - i * hu) + w10 * (fn[fr, i + 1, j, u] - (i + 1) * hu)
+              + w01 * (fn[fr, i, j + 1, u] - i * hu) + w11 * (fn[fr, i + 1, j + 1, u] - (i + 1) * hu))
+        dv = (w00 * (fn[fr, i, j, v] - j * hv) + w10 * (fn[fr, i + 1, j, v] - j * hv)
+              + w01 * (fn[fr, i, j + 1, v] - (j + 1) * hv) + w11 * (fn[fr, i + 1, j + 1, v] - (j + 1) * hv))
+        a, b = pu - du, pv - dv
+        i = min(max(int(math.floor(a / hu)), 0), nu - 2)
+        j = min(max(int(math.floor(b / hv)), 0), nv - 2)
+        wa, wb = a / hu - i, b / hv - j
+        z = ((1 - wa) * (1 - wb) * fn[fr, i, j, axis] + wa * (1 - wb) * fn[fr, i + 1, j, axis]
+             + (1 - wa) * wb * fn[fr, i, j + 1, axis] + wa * wb * fn[fr, i + 1, j + 1, axis])
+        out[m] = p[m, axis] - z
+    return out
 
 
 def frame_bins(clouds, layout: FieldLayout) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:

@@ -250,6 +250,15 @@ class Nuisance:
     names: tuple[str, ...]
     lower: np.ndarray = field(default_factory=lambda: np.zeros(0))
     upper: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    _svd: tuple = field(init=False, repr=False, compare=False, default=())
+
+    def __post_init__(self):
+        # the thin SVD of the train columns, once: every projection of a residual is then
+        # an (m, m) problem (the bounded one too: |N c - r|^2 = |S V' c - U' r|^2 + const)
+        if self.train.shape[1]:
+            U, sv, Vt = np.linalg.svd(self.train, full_matrices=False)
+            cut = np.finfo(np.float64).eps * max(self.train.shape) * (sv[0] if sv.size else 0.0)
+            object.__setattr__(self, "_svd", (U, sv, Vt, sv > cut))
 
     @classmethod
     def build(cls, ev: Evidence, fixed: Sequence[dict], E: float, names: Sequence[str]) -> "Nuisance":
@@ -280,12 +289,14 @@ class Nuisance:
         if self.size == 0 or not np.all(np.isfinite(r_train)):
             return np.zeros(self.size)
         free = np.isinf(self.lower) & np.isinf(self.upper)
-        c = np.linalg.lstsq(self.train, r_train, rcond=None)[0]
+        U, sv, Vt, keep = self._svd
+        b = U.T @ r_train
+        c = Vt[keep].T @ (b[keep] / sv[keep])  # the minimum-norm least-squares solution (as lstsq)
         if np.all(free | ((c >= self.lower) & (c <= self.upper))):
             return c
         from scipy.optimize import lsq_linear
 
-        return lsq_linear(self.train, r_train, bounds=(self.lower, self.upper), method="bvls").x
+        return lsq_linear(sv[:, None] * Vt, b, bounds=(self.lower, self.upper), method="bvls").x
 
     def project(self, r_train: np.ndarray) -> np.ndarray:
         """``r_train`` minus its nuisance part on train (inf stays inf)."""

@@ -13,7 +13,7 @@ gradient of the elastic energy ``sum_e V_e Psi(F_e)`` (Sifakis & Barbic 2012,
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -50,6 +50,38 @@ class ElementData:
     GT: sp.csr_matrix
     volume: np.ndarray
     grad_n: np.ndarray
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def stiffness_assembly(self) -> tuple:
+        """The small-strain stiffness as a linear map of the per-element Lamé parameters,
+        built once: ``(indptr, indices, slot (144 E,), K_mu (E, 144), K_lam (E, 144))`` with
+        ``K.data = bincount(slot, mu_e K_mu + lam_e K_lam)`` on that CSR pattern.
+
+        Per element, ``K[a i, b j] = V (mu (d_ij g_a.g_b + g_aj g_bi) + lam g_ai g_bj)``
+        with ``g_a`` the shape-function gradients (the tangent of ``P = mu (H + H^T) +
+        lam tr(H) I``)."""
+        hit = self._cache.get("stiffness")
+        if hit is not None:
+            return hit
+        g = self.grad_n  # (E, 4, 3)
+        n_el = g.shape[0]
+        eye = np.eye(3)
+        gg = np.einsum("eak,ebk->eab", g, g)  # g_a . g_b
+        # K_mu[e, a, i, b, j] = V (d_ij gg_ab + g_aj g_bi); K_lam = V g_ai g_bj
+        k_mu = (np.einsum("ij,eab->eaibj", eye, gg) + np.einsum("eaj,ebi->eaibj", g, g)) * self.volume[:, None, None, None, None]
+        k_lam = np.einsum("eai,ebj->eaibj", g, g) * self.volume[:, None, None, None, None]
+        tets = self._cache["tets"]
+        dof = (3 * tets[:, :, None] + np.arange(3)[None, None, :]).reshape(n_el, 12)
+        rows = np.repeat(dof, 12, axis=1).ravel()
+        cols = np.tile(dof, (1, 12)).ravel()
+        n = int(3 * self._cache["n_nodes"])
+        # CSR with sorted indices lists the entries in the order of their keys row * n + col
+        keys, slot = np.unique(rows * n + cols, return_inverse=True)
+        indptr = np.searchsorted(keys // n, np.arange(n + 1)).astype(np.int64)
+        indices = (keys % n).astype(np.int32)
+        hit = (indptr, indices, slot.ravel(), k_mu.reshape(n_el, 144), k_lam.reshape(n_el, 144))
+        self._cache["stiffness"] = hit
+        return hit
 
     @property
     def n_elements(self) -> int:
@@ -99,7 +131,8 @@ def build_elements(nodes: np.ndarray, tets: np.ndarray) -> ElementData:
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
         shape=(9 * n_el, 3 * n_nodes),
     )
-    return ElementData(G=G, GT=G.T.tocsr(), volume=volume, grad_n=grad_n)
+    return ElementData(G=G, GT=G.T.tocsr(), volume=volume, grad_n=grad_n,
+                       _cache={"tets": np.asarray(tets, dtype=np.int64), "n_nodes": int(n_nodes)})
 
 
 def lame_parameters(youngs_modulus, poisson_ratio) -> tuple[np.ndarray, np.ndarray]:
@@ -129,26 +162,13 @@ def linear_stiffness(elements: ElementData, mu: np.ndarray, lam: np.ndarray) -> 
         mu, lam: (E,) per-element Lamé parameters in Pa (per-element materials allowed).
     """
     n_el = elements.n_elements
-    w_mu = np.broadcast_to(mu, (n_el,)) * elements.volume
-    w_lam = np.broadcast_to(lam, (n_el,)) * elements.volume
-    e = np.arange(n_el)
-    rows, cols, vals = [], [], []
-    for i in range(3):
-        for j in range(3):
-            c = 3 * i + j
-            rows += [c * n_el + e, c * n_el + e]
-            cols += [c * n_el + e, (3 * j + i) * n_el + e]
-            vals += [w_mu, w_mu]
-            if i == j:
-                for k in range(3):
-                    rows.append(c * n_el + e)
-                    cols.append((4 * k) * n_el + e)
-                    vals.append(w_lam)
-    D = sp.csr_matrix(
-        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(9 * n_el, 9 * n_el)
-    )
-    K = elements.GT @ D @ elements.G
-    return ((K + K.T) * 0.5).tocsr()
+    indptr, indices, slot, k_mu, k_lam = elements.stiffness_assembly()
+    m = np.broadcast_to(np.asarray(mu, dtype=np.float64), (n_el,))
+    lm = np.broadcast_to(np.asarray(lam, dtype=np.float64), (n_el,))
+    vals = (k_mu * m[:, None] + k_lam * lm[:, None]).ravel()
+    data = np.bincount(slot, weights=vals, minlength=indices.size)
+    n = indptr.size - 1
+    return sp.csr_matrix((data, indices.copy(), indptr.copy()), shape=(n, n))
 
 
 def _trace_rt_f(R: np.ndarray, F: np.ndarray) -> np.ndarray:

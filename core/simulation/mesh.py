@@ -13,6 +13,7 @@ node grid that the learned correction (Wu et al. 2020, Sec. 3.3) convolves over.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property, lru_cache
 from itertools import permutations
 
 import numpy as np
@@ -44,6 +45,17 @@ class TetMesh:
     @property
     def n_nodes(self) -> int:
         return int(self.nodes.shape[0])
+
+    @cached_property
+    def elements(self):
+        """The mesh's :class:`core.simulation.fem.ElementData` (shape-function gradients,
+        volumes, the operator G), built once per mesh.
+
+        Raises:
+            SimulationError: degenerate or inverted tetrahedra."""
+        from core.simulation.fem import build_elements
+
+        return build_elements(self.nodes, self.tets)
 
     @property
     def n_tets(self) -> int:
@@ -90,6 +102,14 @@ def box_mesh(size, grid=(13, 5, 5)) -> TetMesh:
     grid = tuple(int(g) for g in grid)
     if len(grid) != 3 or min(grid) < 2:
         raise SimulationError(f"grid must be 3 node counts >= 2, got {grid}")
+    return _box_mesh(tuple(float(v) for v in size), grid)
+
+
+@lru_cache(maxsize=16)
+def _box_mesh(size: tuple[float, float, float], grid: tuple[int, int, int]) -> TetMesh:
+    """:func:`box_mesh`, built once per (size, grid) in a process (fits and diagnoses
+    build hundreds of models on the same mesh); its arrays are read-only."""
+    size = np.asarray(size, dtype=np.float64)
     nx, ny, nz = grid
     xs, ys, zs = (np.linspace(0.0, s, n) for s, n in zip(size, grid))
     X, Y, Z = np.meshgrid(xs, ys, zs, indexing="ij")
@@ -109,7 +129,9 @@ def box_mesh(size, grid=(13, 5, 5)) -> TetMesh:
     tets = np.concatenate(tets, axis=0).astype(np.int64)
     tets = _orient_positive(nodes, tets)
     tris = _boundary_triangles(nodes, tets)
-    return TetMesh(nodes=nodes, tets=tets, surface_triangles=tris, grid=grid, size=size.copy())
+    for a in (nodes, tets, tris, size):
+        a.flags.writeable = False
+    return TetMesh(nodes=nodes, tets=tets, surface_triangles=tris, grid=grid, size=size)
 
 
 def _orient_positive(nodes: np.ndarray, tets: np.ndarray) -> np.ndarray:

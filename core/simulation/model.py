@@ -177,7 +177,7 @@ class ModelBuilder:
 
     def __init__(self, mesh: TetMesh, mass: float):
         self.mesh = mesh
-        self.elements = fem.build_elements(mesh.nodes, mesh.tets)
+        self.elements = mesh.elements
         total_volume = float(self.elements.volume.sum())
         rho = mass / total_volume
         node_mass = np.zeros(mesh.n_nodes)
