@@ -68,6 +68,10 @@ class DiagnosisConfig:
         detectability: state for every kind the smallest size this session's data would
             have claimed (``detectability`` in diagnosis.json).
         seed: of the bootstraps.
+        sensitivities: the fits' Jacobians are the replay's exact sensitivities
+            (:mod:`core.simulation.sensitivity`: the candidate's variables, and log10 E, as
+            extra right-hand sides of each step); False: a forward difference of one replay
+            per variable (the method before, kept for comparison).
         use_force: put the probe force residual (simulated minus measured, per frame and
             axis, in units of the force noise measured on rest frames) into the evidence
             beside the residual field. None: when every sequence has force columns
@@ -98,6 +102,7 @@ class DiagnosisConfig:
     kinds: tuple[str, ...] = KINDS
     detectability: bool = True
     seed: int = 0
+    sensitivities: bool = True
     use_force: bool | None = None
 
     def __post_init__(self):

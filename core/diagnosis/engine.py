@@ -47,7 +47,7 @@ import numpy as np
 
 from core.diagnosis.candidates import top_presses
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.evidence import Directions, Evidence, Spec
 from core.diagnosis.fields import FACES, FieldLayout
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest, holm
@@ -120,7 +120,11 @@ def _field_mask(ev: Evidence, role: str) -> np.ndarray:
 
 def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: np.ndarray,
                          r_v: np.ndarray) -> np.ndarray | None:
-    """(L_v, n) forward-difference signature of ``cand`` at ``x`` on validation."""
+    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity, or with
+    ``cfg.sensitivities`` False a forward difference."""
+    if ev.cfg.sensitivities:
+        J = ev.jacobian(ev.jacobian_runs([Directions(tuple(fixed), cand, x, E)], "validation")[0])
+        return J if np.all(np.isfinite(J)) else None
     pts = []
     for j, h in enumerate(cand.steps):
         xj = x.copy()

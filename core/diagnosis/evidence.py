@@ -19,25 +19,74 @@ from typing import Sequence
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.fields import FieldLayout, frame_bins, residual_field
+from core.diagnosis.fields import FieldLayout, frame_bins, residual_field, residual_field_tangent
 from core.errors import TissueTwinError
 from core.identification.execution import Executor
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
 from core.simulation.replay import PreparedSession, build_replay_model, frame_errors
+from core.simulation.effects import FitSpace
+from core.simulation.sensitivity import simulate_sensitivities
 from core.simulation.solver import simulate
 
-__all__ = ["FieldTrial", "FieldRun", "run_field", "Spec", "Evidence"]
+__all__ = ["Directions", "FieldTrial", "FieldRun", "run_field", "Spec", "Evidence"]
+
+
+@dataclass(frozen=True)
+class Directions:
+    """The parameters a field run is differentiated along: a candidate's fit variables
+    (at ``x``) and, with ``fit_youngs``, log10 of Young's modulus as the last one.
+
+    Attributes:
+        fixed: effect dicts of the model besides the candidate.
+        space: the candidate's fit space (None: E alone).
+        x: (n,) the candidate's fit variables.
+        youngs_modulus: E of the model, Pa (the start of log10 E when fitted).
+        fit_youngs: differentiate along log10 E too.
+    """
+
+    fixed: tuple
+    space: FitSpace | None
+    x: np.ndarray
+    youngs_modulus: float
+    fit_youngs: bool = False
+
+    @property
+    def theta(self) -> np.ndarray:
+        """(p,) the parameters: x, then log10 E when fitted."""
+        tail = [math.log10(self.youngs_modulus)] if self.fit_youngs else []
+        return np.concatenate([np.asarray(self.x, dtype=np.float64).reshape(-1), tail])
+
+    @property
+    def scales(self) -> np.ndarray:
+        """(p,) each parameter's scale (the fit's steps; log10 E: :data:`E_SCALE`)."""
+        head = self.space.steps if self.space is not None else np.zeros(0)
+        return np.concatenate([head, [E_SCALE] if self.fit_youngs else []])
+
+    def effects(self, theta: np.ndarray) -> tuple:
+        n = 0 if self.space is None else len(self.space.names)
+        cand = () if self.space is None else (self.space.to_effect(np.asarray(theta[:n])),)
+        return tuple(self.fixed) + cand
+
+    def youngs(self, theta: np.ndarray) -> float:
+        return float(10.0 ** theta[-1]) if self.fit_youngs else float(self.youngs_modulus)
+
+
+E_SCALE = 0.02
+"""Scale of log10 E in the sensitivities (their model differences take 1e-4 of it)."""
 
 
 @dataclass(frozen=True)
 class FieldTrial:
-    """One replay for the diagnosis: a trial, the field layout, and whether to compute
-    the paper's point-to-mesh error too (slower: a KD-tree per frame)."""
+    """One replay for the diagnosis: a trial, the field layout, whether to compute the
+    paper's point-to-mesh error too (slower: a KD-tree per frame), and optionally the
+    directions to differentiate the run along (:mod:`core.simulation.sensitivity`; the
+    trial's effects and E are then those of the directions at their ``theta``)."""
 
     trial: Trial
     layout: FieldLayout
     paper_error: bool = False
+    directions: Directions | None = None
 
 
 @dataclass(frozen=True)
@@ -71,6 +120,14 @@ class FieldRun:
     force: np.ndarray
     youngs_modulus: float
     clock_offset: float = 0.0
+    jac_field: np.ndarray | None = None
+    """(p, F, B) d field / d theta along the trial's directions (None without them), m per unit."""
+    jac_force: np.ndarray | None = None
+    """(p, F, 3) d force / d theta, N per unit."""
+    d_youngs: np.ndarray | None = None
+    """(p,) d E / d theta, Pa per unit."""
+    d_offset: np.ndarray | None = None
+    """(p,) d clock_offset / d theta, s per unit."""
 
 
 _BINS: dict = {}
@@ -90,12 +147,35 @@ def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
     return hit[1]
 
 
+def _clock_offset(effects) -> float:
+    return sum(float(e["offset"]) for e in effects if e["kind"] == "time_offset")
+
+
 def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
-    """Replay ``item.trial`` (a fresh model) and measure its residual field (worker function)."""
+    """Replay ``item.trial`` (a fresh model) and measure its residual field (worker
+    function); with ``item.directions``, differentiate it along them too."""
     t = item.trial
     seq = prepared.sequences[t.sequence]
-    model = build_replay_model(prepared, t.replay_config())
-    sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times)
+    jac = None
+    if item.directions is None:
+        model = build_replay_model(prepared, t.replay_config())
+        sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times)
+    else:
+        d = item.directions
+        theta, scales = d.theta, d.scales
+
+        def build(th, factorize):
+            tr = replace(t, effects=d.effects(th), youngs_modulus=d.youngs(th))
+            return build_replay_model(prepared, tr.replay_config(), factorize=factorize)
+
+        sens = simulate_sensitivities(build, theta, seq.probe, prepared.probe_radius, seq.frame_times, scales=scales)
+        sim = sens.result
+        h = 1e-4 * np.where(scales > 0, scales, 1.0)
+        d_E = np.array([(d.youngs(theta + hj * e) - d.youngs(theta - hj * e)) / (2 * hj)
+                        for hj, e in zip(h, np.eye(theta.size))])
+        d_off = np.array([(_clock_offset(d.effects(theta + hj * e)) - _clock_offset(d.effects(theta - hj * e))) / (2 * hj)
+                          for hj, e in zip(h, np.eye(theta.size))])
+        jac = (sens.positions, sens.contact_force, d_E, d_off)
     pts, bins, counts = _binned(prepared, t.sequence, item.layout)
     fld, ss, dof = residual_field(sim.positions, t.grid, item.layout, pts, bins, counts)
     n = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
@@ -103,9 +183,14 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
     if item.paper_error:
         means, _ = frame_errors(sim.positions, t.grid, seq.clouds)
         sums = means * n  # NaN where the frame diverged
-    offset = sum(float(e["offset"]) for e in t.effects if e["kind"] == "time_offset")
-    return FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
-                    np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), offset)
+    run = FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
+                   np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects))
+    if jac is not None:
+        dpos, dforce, d_E, d_off = jac
+        dfield = residual_field_tangent(sim.positions, dpos, t.grid, item.layout, pts, bins, counts)
+        run = replace(run, jac_field=dfield, jac_force=np.asarray(dforce, dtype=np.float64), d_youngs=d_E,
+                      d_offset=d_off)
+    return run
 
 
 @dataclass(frozen=True)
@@ -192,21 +277,65 @@ class Evidence:
              fine: bool = False) -> list[list[FieldRun]]:
         """Field runs of every model (a :class:`Spec`, or effect dicts at the configured
         E) on every sequence of ``role`` (on the fine grid when ``fine`` and one is configured)."""
+        specs = [m if isinstance(m, Spec) else self.spec(m) for m in models]
+        return self._runs([(m, None) for m in specs], role, paper, fine)
+
+    def jacobian_runs(self, directions: Sequence[Directions], role: str, *, fine: bool = False) -> list[list[FieldRun]]:
+        """Field runs at each ``directions``' parameters on every sequence of ``role``, with
+        their derivatives along them (:class:`FieldRun` ``jac_*``; see :meth:`jacobian`)."""
+        items = [(Spec(d.effects(d.theta), d.youngs(d.theta)), d) for d in directions]
+        return self._runs(items, role, False, fine)
+
+    def _runs(self, items, role, paper, fine):
         names = self.names[role]
         grid = tuple(self.cfg.fine_grid) if fine and self.cfg.fine_grid else tuple(self.cfg.grid)
-        specs = [m if isinstance(m, Spec) else self.spec(m) for m in models]
+
+        def key(m, d, n):
+            k = self._key(m, n, paper, grid)
+            return k if d is None else k + ("jacobian", None if d.space is None else d.space.kind, d.fit_youngs)
+
         todo, keys = [], []
-        for m in specs:
+        for m, d in items:
             for n in names:
-                k = self._key(m, n, paper, grid)
+                k = key(m, d, n)
                 if k not in self.cache and k not in keys:
                     keys.append(k)
-                    todo.append(FieldTrial(self.trial(n, m, grid), self.layout, paper))
+                    todo.append(FieldTrial(self.trial(n, m, grid), self.layout, paper, d))
         if todo:
             out = self.executor.map(run_field, self.prepared, todo)
             self.simulations += len(todo)
             self.cache.update(zip(keys, out))
-        return [[self.cache[self._key(m, n, paper, grid)] for n in names] for m in specs]
+            for k, r, item in zip(keys, out, todo):
+                if item.directions is not None:  # the run itself answers plain requests too
+                    self.cache.setdefault(k[:-3], replace(r, jac_field=None, jac_force=None, d_youngs=None, d_offset=None))
+        return [[self.cache[key(m, d, n)] for n in names] for m, d in items]
+
+    def jacobian(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
+        """(L, p) d :meth:`vector` / d theta of runs from :meth:`jacobian_runs`: the field's
+        derivative weighted as the vector, then with force data the force's (a coarse run's
+        mapped onto the fine grid as :meth:`_shifted_force` maps the force) minus that of
+        the measured force read at the run's clock offset, in noise units."""
+        parts = []
+        for r in runs:
+            if r.jac_field is None:
+                raise TissueTwinError("jacobian() needs runs with derivatives (jacobian_runs)")
+            p = r.jac_field.shape[0]
+            w = np.sqrt(self.counts[r.sequence].astype(np.float64))
+            parts.append((w[None] * r.jac_field).reshape(p, -1))
+            if self.use_force:
+                df = r.jac_force
+                if shifted and r.sequence in self.force_delta:
+                    df = (self.force_ratio[r.sequence] * df
+                          + self.force_delta[r.sequence][None] * (r.d_youngs / self.cfg.youngs_modulus)[:, None, None])
+                if np.any(r.d_offset != 0.0):
+                    seq = self.prepared.sequences[r.sequence]
+                    h = 1e-4
+                    t = seq.frame_times + r.clock_offset
+                    rate = (seq.force_at(t + h) - seq.force_at(t - h)) / (2 * h)  # d measured / d offset, N/s
+                    df = df - r.d_offset[:, None, None] * rate[None]
+                parts.append((np.sqrt(self.sigma2) * df / self.force_sigma).reshape(p, -1))
+        J = np.concatenate(parts, axis=1).T
+        return J if all(r.ok for r in runs) else np.full(J.shape, np.inf)
 
     def discrepancy(self, role: str) -> None:
         """Store ``fine - coarse`` base fields (and forces) of the sequences of ``role``

@@ -30,7 +30,8 @@ import numpy as np
 from numba import njit
 
 
-__all__ = ["FieldLayout", "FACES", "face_residuals", "frame_bins", "residual_field", "phase_labels", "PHASES"]
+__all__ = ["FieldLayout", "FACES", "face_residuals", "face_residuals_tangent", "frame_bins", "residual_field",
+           "residual_field_tangent", "phase_labels", "PHASES"]
 
 PHASES = ("rest", "loading", "holding", "unloading", "sliding")
 """Labels of :func:`phase_labels`, in this order."""
@@ -228,6 +229,102 @@ def _face_residuals(p, fn, f, u, v, axis, su, sv):
         z = ((1 - wa) * (1 - wb) * fn[fr, i, j, axis] + wa * (1 - wb) * fn[fr, i + 1, j, axis]
              + (1 - wa) * wb * fn[fr, i, j + 1, axis] + wa * wb * fn[fr, i + 1, j + 1, axis])
         out[m] = p[m, axis] - z
+    return out
+
+
+def face_residuals_tangent(points: np.ndarray, positions: np.ndarray, dpositions: np.ndarray, grid, size,
+                           face: str, frames: np.ndarray) -> np.ndarray:
+    """Derivatives of :func:`face_residuals` along p directions of the node positions.
+
+    Args:
+        points: (M, 3) measured points of ``face``, m. positions: (F, N, 3) node positions,
+            m; dpositions: (p, F, N, 3) their derivatives. frames: (M,) int frame of each point.
+
+    Returns:
+        (p, M) d residual, m per unit of each direction (the points' cells held, as the
+        residual is bilinear within them).
+    """
+    axis, high = _FACE_AXIS[face]
+    u, v = [a for a in (0, 1, 2) if a != axis]
+    g = [int(n) for n in grid]
+    pos = np.asarray(positions, dtype=np.float64)
+    dpos = np.asarray(dpositions, dtype=np.float64)
+    nodes = pos.reshape(pos.shape[0], g[0], g[1], g[2], 3)
+    dnodes = dpos.reshape(dpos.shape[0], dpos.shape[1], g[0], g[1], g[2], 3)
+    sl = [slice(None)] * 4
+    sl[1 + axis] = -1 if high else 0
+    fn = np.ascontiguousarray(nodes[tuple(sl)])
+    dfn = np.ascontiguousarray(dnodes[(slice(None),) + tuple(sl)])
+    p = np.ascontiguousarray(points, dtype=np.float64)
+    dr = _face_residuals_tangent(p, fn, dfn, np.asarray(frames, dtype=np.int64), u, v, axis, float(size[u]),
+                                 float(size[v]))
+    return dr if high else -dr
+
+
+@njit(cache=True)
+def _face_residuals_tangent(p, fn, dfn, f, u, v, axis, su, sv):
+    nu, nv = fn.shape[1], fn.shape[2]
+    hu, hv = su / (nu - 1), sv / (nv - 1)
+    n_dir = dfn.shape[0]
+    out = np.empty((n_dir, p.shape[0]))
+    for m in range(p.shape[0]):
+        fr = f[m]
+        pu, pv = p[m, u], p[m, v]
+        i = min(max(int(math.floor(pu / hu)), 0), nu - 2)
+        j = min(max(int(math.floor(pv / hv)), 0), nv - 2)
+        wa, wb = pu / hu - i, pv / hv - j
+        w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
+        du = (w00 * (fn[fr, i, j, u] - i * hu) + w10 * (fn[fr, i + 1, j, u] - (i + 1) * hu)
+              + w01 * (fn[fr, i, j + 1, u] - i * hu) + w11 * (fn[fr, i + 1, j + 1, u] - (i + 1) * hu))
+        dv = (w00 * (fn[fr, i, j, v] - j * hv) + w10 * (fn[fr, i + 1, j, v] - j * hv)
+              + w01 * (fn[fr, i, j + 1, v] - (j + 1) * hv) + w11 * (fn[fr, i + 1, j + 1, v] - (j + 1) * hv))
+        a, b = pu - du, pv - dv
+        i2 = min(max(int(math.floor(a / hu)), 0), nu - 2)
+        j2 = min(max(int(math.floor(b / hv)), 0), nv - 2)
+        wa2, wb2 = a / hu - i2, b / hv - j2
+        f00, f10 = fn[fr, i2, j2, axis], fn[fr, i2 + 1, j2, axis]
+        f01, f11 = fn[fr, i2, j2 + 1, axis], fn[fr, i2 + 1, j2 + 1, axis]
+        dz_dwa = (1 - wb2) * (f10 - f00) + wb2 * (f11 - f01)
+        dz_dwb = (1 - wa2) * (f01 - f00) + wa2 * (f11 - f10)
+        for t in range(n_dir):
+            ddu = (w00 * dfn[t, fr, i, j, u] + w10 * dfn[t, fr, i + 1, j, u] + w01 * dfn[t, fr, i, j + 1, u]
+                   + w11 * dfn[t, fr, i + 1, j + 1, u])
+            ddv = (w00 * dfn[t, fr, i, j, v] + w10 * dfn[t, fr, i + 1, j, v] + w01 * dfn[t, fr, i, j + 1, v]
+                   + w11 * dfn[t, fr, i + 1, j + 1, v])
+            dz = ((1 - wa2) * (1 - wb2) * dfn[t, fr, i2, j2, axis] + wa2 * (1 - wb2) * dfn[t, fr, i2 + 1, j2, axis]
+                  + (1 - wa2) * wb2 * dfn[t, fr, i2, j2 + 1, axis] + wa2 * wb2 * dfn[t, fr, i2 + 1, j2 + 1, axis]
+                  - dz_dwa * ddu / hu - dz_dwb * ddv / hv)
+            out[t, m] = -dz
+    return out
+
+
+def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, layout: FieldLayout, points, bins,
+                           counts) -> np.ndarray:
+    """Derivatives (p, F, B) of :func:`residual_field`'s bin means along p directions of the
+    node positions (``dpositions`` (p, F, N, 3)); zero where a bin is empty or a frame
+    diverged."""
+    F, B = counts.shape
+    n_dir = dpositions.shape[0]
+    out = np.zeros((n_dir, F, B))
+    face_of = layout.face_of_bin()
+    pos = np.asarray(positions, dtype=np.float64)
+    ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
+    if not np.any(ok) or n_dir == 0:
+        return out
+    use = np.flatnonzero(ok)
+    fr = np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in use])
+    pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
+    bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
+    fb = face_of[bn]
+    dr = np.empty((n_dir, pts.shape[0]))
+    for k in np.unique(fb):
+        m = fb == k
+        dr[:, m] = face_residuals_tangent(pts[m], pos, dpositions, grid, layout.size, FACES[k], fr[m])
+    flat = fr * B + bn
+    n = np.where(ok[:, None], counts, 0).astype(np.float64)
+    for t in range(n_dir):
+        sums = np.bincount(flat, weights=dr[t], minlength=F * B).reshape(F, B)
+        out[t] = np.divide(sums, n, out=np.zeros((F, B)), where=n > 0)
     return out
 
 

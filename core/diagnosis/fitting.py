@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.evidence import Directions, Evidence, Spec
 from core.diagnosis.nuisance import Nuisance
 from core.simulation.effects import EFFECT_KINDS, FitSpace
 
@@ -61,8 +61,9 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
                   iterations: int | None = None, nuisance: Nuisance | None = None) -> Fit:
     """Levenberg-Marquardt fit of one candidate's variables on train, the other effects
     ``fixed`` (on the coarse grid with the discrepancy shift, or on the fine grid when
-    ``fine``), forward-difference Jacobian (the candidate's signature); Nocedal & Wright
-    (2006), Sec. 10.3.
+    ``fine``); Nocedal & Wright (2006), Sec. 10.3. The Jacobian (the candidate's
+    signature) is the replay's exact sensitivity (:mod:`core.simulation.sensitivity`),
+    or with ``cfg.sensitivities`` False a forward difference of one replay per variable.
 
     Args:
         cand: the candidate; None fits E alone (``fit_youngs`` must be set).
@@ -117,7 +118,11 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             xj = x.copy()
             xj[j] = x[j] + h if x[j] + h <= cand.upper[j] else x[j] - h
             pts.append(xj)
-        if fit_youngs and semi_analytic:
+        if eng.cfg.sensitivities:
+            # the exact Jacobian: the replay at x differentiated along every variable
+            d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs)
+            J_raw = eng.jacobian(eng.jacobian_runs([d], "train", fine=fine)[0], shifted=not fine)
+        elif fit_youngs and semi_analytic:
             # the log10 E column is semi-analytic: with every stiffness proportional to E
             # (the contact's too), the quasi-static force is proportional to E at a fixed
             # dent and the field does not depend on it (trial steps are real runs)

@@ -13,11 +13,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["element_forces", "scatter_forces", "sphere_triangle_candidates", "sphere_contacts"]
+__all__ = ["quat_to_matrix", "polar_update", "pk1_stress", "element_forces", "scatter_forces",
+           "sphere_triangle_candidates", "sphere_contacts", "constraint_matrix"]
 
 
 @njit(cache=True)
-def _quat_mat(qx, qy, qz, qw, R):
+def quat_to_matrix(qx, qy, qz, qw, R):
+    """Rotation matrix (9,) row-major of the unit quaternion (x, y, z, w), into R."""
     xx, yy, zz = qx * qx, qy * qy, qz * qz
     xy, xz, yz = qx * qy, qx * qz, qy * qz
     wx, wy, wz = qw * qx, qw * qy, qw * qz
@@ -33,11 +35,18 @@ def _quat_mat(qx, qy, qz, qw, R):
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
-def _stable_yeoh_pk1(F, mu, lam, stiffening, P):
-    """PK1 stress of law 2 into P (9,): stable neo-Hookean plus the Yeoh-type term
-    ``2 k mu I_D (F - cof F)``, ``I_D = I_C - 3 - 2 (J - 1)`` (see fem.pk1_stable_yeoh).
-    A function of its own so that the law-1 code of :func:`element_forces` compiles as
-    before (bit-identical truth of older lab sessions)."""
+def pk1_stress(law, F, R, mu, lam, stiffening, P):
+    """First Piola-Kirchhoff stress (9,) Pa of one element into P: law 0 corotational linear
+    (Müller & Gross 2004; R its rotation), 1 stable neo-Hookean (Smith et al. 2018), 2
+    stable neo-Hookean plus the Yeoh-type term ``2 k mu I_D (F - cof F)``, ``I_D = I_C - 3
+    - 2 (J - 1)`` (see :func:`core.simulation.fem.pk1_stable_yeoh`)."""
+    if law == 0:
+        tr = -3.0
+        for c in range(9):
+            tr += R[c] * F[c]
+        for c in range(9):
+            P[c] = 2.0 * mu * (F[c] - R[c]) + lam * tr * R[c]
+        return
     f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
     c0 = f4 * f8 - f5 * f7
     c1 = f5 * f6 - f3 * f8
@@ -51,10 +60,12 @@ def _stable_yeoh_pk1(F, mu, lam, stiffening, P):
     J = f0 * c0 + f1 * c1 + f2 * c2
     lam_s = lam + mu
     g = lam_s * (J - (1.0 + mu / lam_s))
-    ic = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8
-    hy = 2.0 * stiffening * mu * (ic - 1.0 - 2.0 * J)
-    m = mu + hy
-    g = g - hy
+    m = mu
+    if law == 2:
+        ic = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8
+        hy = 2.0 * stiffening * mu * (ic - 1.0 - 2.0 * J)
+        m = mu + hy
+        g = g - hy
     P[0] = m * f0 + g * c0
     P[1] = m * f1 + g * c1
     P[2] = m * f2 + g * c2
@@ -64,6 +75,72 @@ def _stable_yeoh_pk1(F, mu, lam, stiffening, P):
     P[6] = m * f6 + g * c6
     P[7] = m * f7 + g * c7
     P[8] = m * f8 + g * c8
+
+
+@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
+def polar_update(F, q, e, iterations, R):
+    """Warm-started Newton iterations on the polar decomposition of F (9,) from the
+    quaternion ``q[:, e]`` (updated in place); R (9,) receives the rotation.
+
+    With ``B = R^T F``, the small rotation theta (element frame) solves
+    ``axial(B - B^T) = (tr S I - S) theta``, ``S = sym(B)``: a Newton step on the polar
+    condition, quadratically convergent (Müller et al. 2016's update is its diagonal
+    approximation, kept as the fallback). The update is the unnormalised quaternion
+    ``(theta/2, 1)``: a rotation by ``2 atan(|theta|/2)``, the same fixed point as the exact
+    exponential map, without sin/cos."""
+    qx, qy, qz, qw = q[0, e], q[1, e], q[2, e], q[3, e]
+    for _ in range(iterations):
+        quat_to_matrix(qx, qy, qz, qw, R)
+        b00 = R[0] * F[0] + R[3] * F[3] + R[6] * F[6]
+        b01 = R[0] * F[1] + R[3] * F[4] + R[6] * F[7]
+        b02 = R[0] * F[2] + R[3] * F[5] + R[6] * F[8]
+        b10 = R[1] * F[0] + R[4] * F[3] + R[7] * F[6]
+        b11 = R[1] * F[1] + R[4] * F[4] + R[7] * F[7]
+        b12 = R[1] * F[2] + R[4] * F[5] + R[7] * F[8]
+        b20 = R[2] * F[0] + R[5] * F[3] + R[8] * F[6]
+        b21 = R[2] * F[1] + R[5] * F[4] + R[8] * F[7]
+        b22 = R[2] * F[2] + R[5] * F[5] + R[8] * F[8]
+        v0 = b21 - b12
+        v1 = b02 - b20
+        v2 = b10 - b01
+        tr = b00 + b11 + b22
+        s01 = 0.5 * (b01 + b10)
+        s02 = 0.5 * (b02 + b20)
+        s12 = 0.5 * (b12 + b21)
+        m00 = tr - b00
+        m11 = tr - b11
+        m22 = tr - b22
+        c00 = m11 * m22 - s12 * s12
+        c01 = s02 * s12 + s01 * m22
+        c02 = s01 * s12 + s02 * m11
+        det = m00 * c00 - s01 * c01 - s02 * c02
+        if tr > 1e-6 and det > 1e-6 * tr * tr * tr:
+            c11 = m00 * m22 - s02 * s02
+            c12 = m00 * s12 + s01 * s02
+            c22 = m00 * m11 - s01 * s01
+            inv = 1.0 / det
+            t0 = (c00 * v0 + c01 * v1 + c02 * v2) * inv
+            t1 = (c01 * v0 + c11 * v1 + c12 * v2) * inv
+            t2 = (c02 * v0 + c12 * v1 + c22 * v2) * inv
+        else:
+            inv = 1.0 / (abs(tr) + 1e-9)
+            t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
+        ang2 = t0 * t0 + t1 * t1 + t2 * t2
+        if ang2 > 1.0:  # damp huge steps (inverted elements)
+            sc = 1.0 / np.sqrt(ang2)
+            t0, t1, t2 = t0 * sc, t1 * sc, t2 * sc
+        if ang2 < 1e-28:
+            break
+        x1, y1, z1 = 0.5 * t0, 0.5 * t1, 0.5 * t2
+        # q <- q * (x1, y1, z1, 1) (rotation applied in the element frame)
+        nx_ = qw * x1 + qx + qy * z1 - qz * y1
+        ny_ = qw * y1 - qx * z1 + qy + qz * x1
+        nz_ = qw * z1 + qx * y1 - qy * x1 + qz
+        nw_ = qw - qx * x1 - qy * y1 - qz * z1
+        nrm = 1.0 / np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_ + nw_ * nw_)
+        qx, qy, qz, qw = nx_ * nrm, ny_ * nrm, nz_ * nrm, nw_ * nrm
+    q[0, e], q[1, e], q[2, e], q[3, e] = qx, qy, qz, qw
+    quat_to_matrix(qx, qy, qz, qw, R)
 
 
 @njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
@@ -104,102 +181,14 @@ def element_forces(x, tets, grad_n, volume, mu, lam, q, iterations, law, F_out, 
                     s += x[tets[e, a], i] * grad_n[e, a, k]
                 F[3 * i + k] = s
         if iterations > 0:
-            qx, qy, qz, qw = q[0, e], q[1, e], q[2, e], q[3, e]
-            for _ in range(iterations):
-                _quat_mat(qx, qy, qz, qw, R)
-                # B = R^T F; find the small rotation theta (element frame) with
-                # axial(B - B^T) = (tr S I - S) theta, S = sym(B): a Newton step on
-                # the polar condition, quadratically convergent (Müller et al. 2016's
-                # update is its diagonal approximation, kept as the fallback).
-                b00 = R[0] * F[0] + R[3] * F[3] + R[6] * F[6]
-                b01 = R[0] * F[1] + R[3] * F[4] + R[6] * F[7]
-                b02 = R[0] * F[2] + R[3] * F[5] + R[6] * F[8]
-                b10 = R[1] * F[0] + R[4] * F[3] + R[7] * F[6]
-                b11 = R[1] * F[1] + R[4] * F[4] + R[7] * F[7]
-                b12 = R[1] * F[2] + R[4] * F[5] + R[7] * F[8]
-                b20 = R[2] * F[0] + R[5] * F[3] + R[8] * F[6]
-                b21 = R[2] * F[1] + R[5] * F[4] + R[8] * F[7]
-                b22 = R[2] * F[2] + R[5] * F[5] + R[8] * F[8]
-                v0 = b21 - b12
-                v1 = b02 - b20
-                v2 = b10 - b01
-                tr = b00 + b11 + b22
-                s01 = 0.5 * (b01 + b10)
-                s02 = 0.5 * (b02 + b20)
-                s12 = 0.5 * (b12 + b21)
-                m00 = tr - b00
-                m11 = tr - b11
-                m22 = tr - b22
-                c00 = m11 * m22 - s12 * s12
-                c01 = s02 * s12 + s01 * m22
-                c02 = s01 * s12 + s02 * m11
-                det = m00 * c00 - s01 * c01 - s02 * c02
-                if tr > 1e-6 and det > 1e-6 * tr * tr * tr:
-                    c11 = m00 * m22 - s02 * s02
-                    c12 = m00 * s12 + s01 * s02
-                    c22 = m00 * m11 - s01 * s01
-                    inv = 1.0 / det
-                    t0 = (c00 * v0 + c01 * v1 + c02 * v2) * inv
-                    t1 = (c01 * v0 + c11 * v1 + c12 * v2) * inv
-                    t2 = (c02 * v0 + c12 * v1 + c22 * v2) * inv
-                else:
-                    inv = 1.0 / (abs(tr) + 1e-9)
-                    t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
-                ang2 = t0 * t0 + t1 * t1 + t2 * t2
-                if ang2 > 1.0:  # damp huge steps (inverted elements)
-                    sc = 1.0 / np.sqrt(ang2)
-                    t0, t1, t2 = t0 * sc, t1 * sc, t2 * sc
-                if ang2 < 1e-28:
-                    break
-                # unnormalised (theta/2, 1): a rotation by 2 atan(|theta|/2), same fixed
-                # point as the exact exp map, without sin/cos; normalised below
-                x1, y1, z1, w1 = 0.5 * t0, 0.5 * t1, 0.5 * t2, 1.0
-                # q <- q * dq (rotation applied in the element frame)
-                nx_ = qw * x1 + qx * w1 + qy * z1 - qz * y1
-                ny_ = qw * y1 - qx * z1 + qy * w1 + qz * x1
-                nz_ = qw * z1 + qx * y1 - qy * x1 + qz * w1
-                nw_ = qw * w1 - qx * x1 - qy * y1 - qz * z1
-                nrm = 1.0 / np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_ + nw_ * nw_)
-                qx, qy, qz, qw = nx_ * nrm, ny_ * nrm, nz_ * nrm, nw_ * nrm
-            q[0, e], q[1, e], q[2, e], q[3, e] = qx, qy, qz, qw
-            _quat_mat(qx, qy, qz, qw, R)
+            polar_update(F, q, e, iterations, R)
         else:
             for c in range(9):
                 R[c] = 0.0
             R[0] = 1.0
             R[4] = 1.0
             R[8] = 1.0
-        if law == 0:
-            tr = -3.0
-            for c in range(9):
-                tr += R[c] * F[c]
-            for c in range(9):
-                P[c] = 2.0 * mu[e] * (F[c] - R[c]) + lam[e] * tr * R[c]
-        elif law == 1:
-            f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
-            c0 = f4 * f8 - f5 * f7
-            c1 = f5 * f6 - f3 * f8
-            c2 = f3 * f7 - f4 * f6
-            c3 = f2 * f7 - f1 * f8
-            c4 = f0 * f8 - f2 * f6
-            c5 = f1 * f6 - f0 * f7
-            c6 = f1 * f5 - f2 * f4
-            c7 = f2 * f3 - f0 * f5
-            c8 = f0 * f4 - f1 * f3
-            J = f0 * c0 + f1 * c1 + f2 * c2
-            lam_s = lam[e] + mu[e]
-            g = lam_s * (J - (1.0 + mu[e] / lam_s))
-            P[0] = mu[e] * f0 + g * c0
-            P[1] = mu[e] * f1 + g * c1
-            P[2] = mu[e] * f2 + g * c2
-            P[3] = mu[e] * f3 + g * c3
-            P[4] = mu[e] * f4 + g * c4
-            P[5] = mu[e] * f5 + g * c5
-            P[6] = mu[e] * f6 + g * c6
-            P[7] = mu[e] * f7 + g * c7
-            P[8] = mu[e] * f8 + g * c8
-        else:
-            _stable_yeoh_pk1(F, mu[e], lam[e], stiffening, P)
+        pk1_stress(law, F, R, mu[e], lam[e], stiffening, P)
         if store:
             for c in range(9):
                 F_out[e, c] = F[c]

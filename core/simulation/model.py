@@ -386,6 +386,8 @@ def build_model(
     material: Material,
     config: SimulationConfig | None = None,
     effects: Sequence[Effect] = (),
+    *,
+    factorize: bool = True,
 ) -> Model:
     """Assemble a model: lumped masses, per-element materials, supports, the constant
     implicit-Euler system matrix (factorised once) and the effects' options.
@@ -396,6 +398,8 @@ def build_model(
         material: base material.
         config: numerical settings (defaults: paper's Rayleigh 0.1/0.1, dt = 1/120 s).
         effects: model options (see :mod:`core.simulation.effects`).
+        factorize: factorise the implicit-Euler system matrix (False: a model that cannot
+            be stepped, whose arrays a sensitivity computation differentiates).
 
     Raises:
         SimulationError: non-physical parameters, a mesh without fixed or supported
@@ -418,7 +422,7 @@ def build_model(
     free_index = np.full(3 * mesh.n_nodes, -1, dtype=np.int64)
     free_index[free_dofs] = np.arange(free_dofs.size)
     factor = None
-    if config.integrator == "implicit_euler":
+    if config.integrator == "implicit_euler" and factorize:
         dt = config.dt
         m3 = np.repeat(builder.node_mass, 3)
         k_lhs = dt * config.rayleigh_stiffness + dt * dt * (1.0 + sum(t.lhs_scale(dt) for t in builder.terms))

@@ -430,8 +430,9 @@ def replay_sequence(
     )
 
 
-def build_replay_model(prepared: PreparedSession, config: ReplayConfig):
-    """The FEM model of ``config`` for the phantom of ``prepared`` (box of session size)."""
+def build_replay_model(prepared: PreparedSession, config: ReplayConfig, *, factorize: bool = True):
+    """The FEM model of ``config`` for the phantom of ``prepared`` (box of session size);
+    ``factorize`` as :func:`core.simulation.build_model`'s."""
     mesh = box_mesh(prepared.size, config.grid)
     return build_model(
         mesh,
@@ -439,6 +440,7 @@ def build_replay_model(prepared: PreparedSession, config: ReplayConfig):
         Material(config.youngs_modulus, config.poisson_ratio, config.law),
         config.simulation,
         config.effects,
+        factorize=factorize,
     )
 
 

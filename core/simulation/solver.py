@@ -26,9 +26,11 @@ from core.errors import SimulationError
 from core.simulation import kernels
 from core.simulation.contact import Contacts, find_contacts
 from core.simulation.model import Model, State
+from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.probe import ProbePath
 
-__all__ = ["SimulationResult", "StepInfo", "step", "simulate", "static_equilibrium", "internal_forces"]
+__all__ = ["SimulationResult", "StepInfo", "StepGrid", "step", "simulate", "step_grid", "static_equilibrium",
+           "internal_forces", "model_tuple", "no_tangents", "divergence_message"]
 
 ProgressCallback = Callable[[float, str], None]
 FrameHook = Callable[[int, float, np.ndarray], "np.ndarray | None"]
@@ -397,18 +399,9 @@ def simulate(
     import time
 
     t_wall = time.perf_counter()
-    for effect in model.effects:
-        path, probe_radius = effect.transform_probe(path, probe_radius)
-    times = np.asarray(output_times, dtype=np.float64).reshape(-1)
-    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
-        raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
-    if not (probe_radius > 0):
-        raise SimulationError(f"probe radius must be positive, got {probe_radius}")
-    dt = model.config.dt
-    t0 = float(min(path.t[0], times[0]))
-    n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
-    step_t = t0 + dt * np.arange(n_steps + 1)
-    centres = path.at(step_t)
+    grid = step_grid(model, path, probe_radius, output_times)
+    times, path, probe_radius, t0, step_t, centres, k_of = grid
+    n_steps = step_t.size - 1
     n_nodes = model.mesh.n_nodes
     if state is None:
         if model.has_body_force:
@@ -428,8 +421,6 @@ def simulate(
     state.t = t0
     out_x = np.full((times.size, n_nodes, 3), np.nan)
     out_f = np.full((times.size, 3), np.nan)
-    # output j lies in (step_t[k-1], step_t[k]]
-    k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
     limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
     j = 0
     free = model.free[:, None]
@@ -474,7 +465,57 @@ def simulate(
     )
 
 
-def _divergence_message(t: float, k: int, disp: float) -> str:
+@dataclass(frozen=True)
+class StepGrid:
+    """The time grid of a replay (see :func:`step_grid`).
+
+    Attributes:
+        times: (F,) output times, s. path: the probe path after the model's input-side
+            effects. probe_radius: m, after them. t0: start time, s. step_t: (K + 1,)
+            step times from t0, s. centres: (K + 1, 3) probe centres at the step times, m,
+            phantom frame. k_of: (F,) int64, the step whose end follows each output time
+            (output j lies in ``(step_t[k-1], step_t[k]]``).
+    """
+
+    times: np.ndarray
+    path: ProbePath
+    probe_radius: float
+    t0: float
+    step_t: np.ndarray
+    centres: np.ndarray
+    k_of: np.ndarray
+
+    def __iter__(self):
+        return iter((self.times, self.path, self.probe_radius, self.t0, self.step_t, self.centres, self.k_of))
+
+
+def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) -> StepGrid:
+    """The steps of a replay of ``path`` with ``model``: the start is the earlier of the
+    recorded path's first time and the first output time (before the input-side effects,
+    so that a clock offset moves the probe, not the grid), then steps of ``config.dt``
+    up to the last output time.
+
+    Raises:
+        SimulationError: empty, non-finite or decreasing output times, or a probe radius
+            that is not positive after the effects.
+    """
+    times = np.asarray(output_times, dtype=np.float64).reshape(-1)
+    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+        raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
+    t0 = float(min(path.t[0], times[0]))
+    for effect in model.effects:
+        path, probe_radius = effect.transform_probe(path, probe_radius)
+    if not (probe_radius > 0):
+        raise SimulationError(f"probe radius must be positive, got {probe_radius}")
+    dt = model.config.dt
+    n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
+    step_t = t0 + dt * np.arange(n_steps + 1)
+    k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
+    return StepGrid(times, path, float(probe_radius), t0, step_t, path.at(step_t), k_of)
+
+
+def divergence_message(t: float, k: int, disp: float) -> str:
+    """The reason a replay diverged at time ``t`` (s), step ``k``, largest displacement ``disp`` (m)."""
     return (f"diverged at t = {t:.3f} s (step {k}): "
             + ("non-finite positions" if not np.isfinite(disp) else f"node moved {disp * 1e3:.0f} mm"))
 
@@ -494,38 +535,28 @@ def _simulate_compiled(model, state, centres, step_t, times, k_of, j, out_x, out
     returns (final state, last step, status, message)."""
     from core.simulation import stepper
 
-    cfg, el, fac = model.config, model.elements, model._factor
-    dt = cfg.dt
+    fac = model._factor
     n_steps = step_t.size - 1
     x = np.ascontiguousarray(state.x, dtype=np.float64).copy()
     v = np.ascontiguousarray(state.v, dtype=np.float64).copy()
     q = np.ascontiguousarray(state.q, dtype=np.float64).copy()
     n_el = model.mesh.n_tets
     eps_v = (np.ascontiguousarray(np.stack(state.term_state)) if model.terms else np.zeros((0, 9, n_el)))
-    tau = np.array([t.tau for t in model.terms], dtype=np.float64)
-    kr = np.array([t.k for t in model.terms], dtype=np.float64)
-    law = {"corotational": 0, "stable_neo_hookean": 1, "stable_yeoh": 2}[model.material.law]
-    iters = cfg.polar_iterations if model.needs_rotation else 0
     prev_x, prev_f, force = x.copy(), np.zeros(3), np.zeros(3)
-    pbtrs = stepper.lapack_pbtrs()
+    pbtrs = lapack_pbtrs()
+    mdl = model_tuple(model)
     F = times.size
     chunk = max(int(math.ceil(F / 50)), 1) if callback is not None else F
     k, resume, status, message = 0, False, "ok", ""
+    tan = no_tangents(model, centres.shape[0], F)
     while True:
         j_stop = min(j + 1, F) if frame_hook is not None else min(j + chunk, F)
         code, k, j, disp, rows = stepper.advance(
-            model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, law, float(model.material.stiffening), iters,
-            tau, kr, dt, cfg.rayleigh_mass, cfg.rayleigh_stiffness, cfg.newton_iterations, model.mass_dofs,
-            model.free_dofs, model.free_index, model.scratch_slot, np.ascontiguousarray(model.body_force, dtype=np.float64),
-            np.ascontiguousarray(model.support_stiffness, dtype=np.float64), model.mesh.nodes,
-            pbtrs, fac.cbT, fac._rows, fac._slot, fac._used,
-            model.mesh.surface_triangles, float(model.contact_stiffness), cfg.contact_margin, cfg.contact_iterations,
-            cfg.contact_tolerance, float(model.friction), cfg.friction_slip_speed,
-            centres, float(probe_radius), x, v, q, eps_v,
-            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force)
+            mdl, pbtrs, fac.cbT, fac._rows, fac._slot, fac._used, centres, float(probe_radius), x, v, q, eps_v,
+            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force, *tan)
         fac._rows = rows
         if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):
-            status, message = "diverged", _divergence_message(step_t[k], k, disp)
+            status, message = "diverged", divergence_message(step_t[k], k, disp)
             break
         if code == stepper.STATUS_STOPPED:
             if frame_hook is not None:
@@ -539,6 +570,36 @@ def _simulate_compiled(model, state, centres, step_t, times, k_of, j, out_x, out
         callback(1.0, f"step {n_steps}/{n_steps}")
     term_state = tuple(np.array(eps_v[i]) for i in range(eps_v.shape[0]))
     return State(x=x, v=v, q=q, term_state=term_state, t=float(step_t[k])), k, status, message
+
+
+def model_tuple(model: Model) -> tuple:
+    """The model as :func:`core.simulation.stepper.advance` takes it (see there)."""
+    cfg, el = model.config, model.elements
+    dt = cfg.dt
+    law = {"corotational": 0, "stable_neo_hookean": 1, "stable_yeoh": 2}[model.material.law]
+    iters = cfg.polar_iterations if model.needs_rotation else 0
+    tau = np.array([t.tau for t in model.terms], dtype=np.float64)
+    kr = np.array([t.k for t in model.terms], dtype=np.float64)
+    k_lhs = dt * cfg.rayleigh_stiffness + dt * dt * (1.0 + sum(t.lhs_scale(dt) for t in model.terms))
+    return (model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, law, float(model.material.stiffening), iters,
+            tau, kr, dt, float(cfg.rayleigh_mass), float(cfg.rayleigh_stiffness), int(cfg.newton_iterations),
+            model.mass_dofs, model.free_dofs, model.free_index, model.scratch_slot,
+            np.ascontiguousarray(model.body_force, dtype=np.float64),
+            np.ascontiguousarray(model.support_stiffness, dtype=np.float64), model.mesh.nodes,
+            model.mesh.surface_triangles, float(model.contact_stiffness), float(cfg.contact_margin),
+            int(cfg.contact_iterations), float(cfg.contact_tolerance), float(model.friction),
+            float(cfg.friction_slip_speed), float(k_lhs))
+
+
+def no_tangents(model: Model, n_centres: int, n_frames: int) -> tuple:
+    """The tangent arguments of :func:`core.simulation.stepper.advance` for p = 0 directions."""
+    N, E, T = model.mesh.n_nodes, model.mesh.n_tets, len(model.terms)
+    z = np.zeros(0)
+    dmdl = (np.zeros((0, E)), np.zeros((0, E)), z, np.zeros((0, N, 3)), np.zeros((0, N)), z, np.zeros((0, T)),
+            np.zeros((0, T)), z, z)
+    return (dmdl, np.zeros((0, n_centres, 3)), np.zeros((0, N, 3)), np.zeros((0, N, 3)), np.zeros((0, 4, E)),
+            np.zeros((0, T, 9, E)), np.zeros((0, n_frames, N, 3)), np.zeros((0, n_frames, 3)), np.zeros((0, N, 3)),
+            np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 def _apply_hook(frame_hook, model, j, times, out_x, x) -> None:
@@ -572,7 +633,7 @@ def _simulate_reference(model, state, centres, step_t, times, k_of, j, out_x, ou
         # a blow-up grows geometrically: checking every 5th step (and the last) is enough
         disp = np.abs(state.x - model.mesh.nodes).max() if (k % 5 == 0 or k == n_steps) else 0.0
         if not np.isfinite(disp) or disp > limit:
-            status, message = "diverged", _divergence_message(step_t[k], k, disp)
+            status, message = "diverged", divergence_message(step_t[k], k, disp)
             break
         while j < times.size and k_of[j] == k:
             a = (times[j] - step_t[k - 1]) / dt

@@ -9,9 +9,10 @@ regularised Coulomb friction) without the interpreter between its pieces. On the
 cost more than the element forces and the banded solve together; the tests check that
 both give the same trajectories and forces.
 
-The banded Cholesky solves call LAPACK's ``dpbtrs`` (scipy's ``cython_lapack``) through
-a function pointer that is passed in as an argument, which keeps every kernel in numba's
-on-disk cache. Per-element 3x3 fields are element-major (E, 9) here.
+The banded solves and the Woodbury updates are :mod:`core.simulation.lowrank`'s; the
+element laws and the polar decomposition :mod:`core.simulation.kernels`'s. With tangent
+directions (p > 0) each step also propagates the derivatives of the state along them
+(:mod:`core.simulation.tangent_step`; see :mod:`core.simulation.sensitivity`).
 
 Layout of the arrays (all float64 unless stated; N nodes, E tetrahedra, n free dofs):
 
@@ -27,15 +28,17 @@ Layout of the arrays (all float64 unless stated; N nodes, E tetrahedra, n free d
 
 from __future__ import annotations
 
-import ctypes
 import math
 
 import numpy as np
 from numba import njit
 
-from core.simulation.kernels import constraint_matrix, sphere_contacts
+from core.simulation.kernels import constraint_matrix, pk1_stress, polar_update, sphere_contacts
+from core.simulation.lowrank import apply_rows, apply_rows_full, band_solve, woodbury_weights
+from core.simulation.tangent import contact_geometry_tangent, element_forces_tangent
+from core.simulation.tangent_step import contact_force_tangent, iteration_tangent
 
-__all__ = ["lapack_pbtrs", "advance", "band_solve", "STATUS_OK", "STATUS_STOPPED", "STATUS_NONFINITE", "STATUS_TOO_FAR"]
+__all__ = ["advance", "STATUS_OK", "STATUS_STOPPED", "STATUS_NONFINITE", "STATUS_TOO_FAR"]
 
 STATUS_OK = 0
 """Every step was taken."""
@@ -47,187 +50,6 @@ STATUS_TOO_FAR = 3
 """Diverged: a node moved further from rest than the divergence limit."""
 
 _FM = {"contract", "arcp", "nsz", "reassoc"}
-_PBTRS = None
-
-
-def lapack_pbtrs():
-    """LAPACK ``dpbtrs`` (banded Cholesky solve) as a ctypes function of nine pointers,
-    from scipy's ``cython_lapack``; pass it to the kernels of this module."""
-    global _PBTRS
-    if _PBTRS is None:
-        from numba.extending import get_cython_function_address
-
-        addr = get_cython_function_address("scipy.linalg.cython_lapack", "dpbtrs")
-        _PBTRS = ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * 9))(addr)
-    return _PBTRS
-
-
-@njit(cache=True)
-def band_solve(pbtrs, cbT, b):
-    """Solve ``A X = B`` in place for the C-order (nrhs, n) right-hand sides ``b`` with the
-    banded Cholesky factor ``cbT`` (see the module docstring). Returns LAPACK's info."""
-    n = cbT.shape[0]
-    kd = cbT.shape[1] - 1
-    nrhs = b.size // n if n > 0 else 0
-    if n == 0 or nrhs == 0:
-        return 0
-    uplo = np.array([85], dtype=np.uint8)  # 'U'
-    iw = np.array([n, kd, nrhs, kd + 1, n, 0], dtype=np.int32)
-    pbtrs(uplo.ctypes, iw[0:].ctypes, iw[1:].ctypes, iw[2:].ctypes, cbT.ctypes, iw[3:].ctypes, b.ctypes,
-          iw[4:].ctypes, iw[5:].ctypes)
-    return iw[5]
-
-
-@njit(cache=True)
-def _ensure_rows(pbtrs, cbT, rows, slot, used, dofs):
-    """Make sure the rows of the inverse for the free ``dofs`` are cached; returns the
-    (possibly grown) ``rows`` buffer."""
-    n = cbT.shape[0]
-    miss = np.empty(dofs.size, dtype=np.int64)
-    m = 0
-    for d in dofs:
-        if slot[d] < 0:
-            dup = False
-            for i in range(m):
-                if miss[i] == d:
-                    dup = True
-                    break
-            if not dup:
-                miss[m] = d
-                m += 1
-    if m == 0:
-        return rows
-    need = used[0] + m
-    if need > rows.shape[0]:
-        grown = np.zeros((max(need, 2 * rows.shape[0], 32), n))
-        grown[: used[0]] = rows[: used[0]]
-        rows = grown
-    E = np.zeros((m, n))
-    for i in range(m):
-        E[i, miss[i]] = 1.0
-    band_solve(pbtrs, cbT, E)
-    for i in range(m):
-        rows[used[0] + i] = E[i]
-        slot[miss[i]] = used[0] + i
-    used[0] = need
-    return rows
-
-
-@njit(cache=True, fastmath=_FM)
-def _quat_mat(qx, qy, qz, qw, R):
-    xx, yy, zz = qx * qx, qy * qy, qz * qz
-    xy, xz, yz = qx * qy, qx * qz, qy * qz
-    wx, wy, wz = qw * qx, qw * qy, qw * qz
-    R[0] = 1 - 2 * (yy + zz)
-    R[1] = 2 * (xy - wz)
-    R[2] = 2 * (xz + wy)
-    R[3] = 2 * (xy + wz)
-    R[4] = 1 - 2 * (xx + zz)
-    R[5] = 2 * (yz - wx)
-    R[6] = 2 * (xz - wy)
-    R[7] = 2 * (yz + wx)
-    R[8] = 1 - 2 * (xx + yy)
-
-
-@njit(cache=True, fastmath=_FM)
-def _polar(F, q, e, iterations, R):
-    """Warm-started Newton iterations on the polar decomposition of F (9,) from q[:, e]
-    (updated in place); R receives the rotation. Same iteration as
-    :func:`core.simulation.kernels.element_forces`."""
-    qx, qy, qz, qw = q[0, e], q[1, e], q[2, e], q[3, e]
-    for _ in range(iterations):
-        _quat_mat(qx, qy, qz, qw, R)
-        b00 = R[0] * F[0] + R[3] * F[3] + R[6] * F[6]
-        b01 = R[0] * F[1] + R[3] * F[4] + R[6] * F[7]
-        b02 = R[0] * F[2] + R[3] * F[5] + R[6] * F[8]
-        b10 = R[1] * F[0] + R[4] * F[3] + R[7] * F[6]
-        b11 = R[1] * F[1] + R[4] * F[4] + R[7] * F[7]
-        b12 = R[1] * F[2] + R[4] * F[5] + R[7] * F[8]
-        b20 = R[2] * F[0] + R[5] * F[3] + R[8] * F[6]
-        b21 = R[2] * F[1] + R[5] * F[4] + R[8] * F[7]
-        b22 = R[2] * F[2] + R[5] * F[5] + R[8] * F[8]
-        v0 = b21 - b12
-        v1 = b02 - b20
-        v2 = b10 - b01
-        tr = b00 + b11 + b22
-        s01 = 0.5 * (b01 + b10)
-        s02 = 0.5 * (b02 + b20)
-        s12 = 0.5 * (b12 + b21)
-        m00 = tr - b00
-        m11 = tr - b11
-        m22 = tr - b22
-        c00 = m11 * m22 - s12 * s12
-        c01 = s02 * s12 + s01 * m22
-        c02 = s01 * s12 + s02 * m11
-        det = m00 * c00 - s01 * c01 - s02 * c02
-        if tr > 1e-6 and det > 1e-6 * tr * tr * tr:
-            c11 = m00 * m22 - s02 * s02
-            c12 = m00 * s12 + s01 * s02
-            c22 = m00 * m11 - s01 * s01
-            inv = 1.0 / det
-            t0 = (c00 * v0 + c01 * v1 + c02 * v2) * inv
-            t1 = (c01 * v0 + c11 * v1 + c12 * v2) * inv
-            t2 = (c02 * v0 + c12 * v1 + c22 * v2) * inv
-        else:
-            inv = 1.0 / (abs(tr) + 1e-9)
-            t0, t1, t2 = v0 * inv, v1 * inv, v2 * inv
-        ang2 = t0 * t0 + t1 * t1 + t2 * t2
-        if ang2 > 1.0:
-            sc = 1.0 / np.sqrt(ang2)
-            t0, t1, t2 = t0 * sc, t1 * sc, t2 * sc
-        if ang2 < 1e-28:
-            break
-        x1, y1, z1 = 0.5 * t0, 0.5 * t1, 0.5 * t2
-        nx_ = qw * x1 + qx + qy * z1 - qz * y1
-        ny_ = qw * y1 - qx * z1 + qy + qz * x1
-        nz_ = qw * z1 + qx * y1 - qy * x1 + qz
-        nw_ = qw - qx * x1 - qy * y1 - qz * z1
-        nrm = 1.0 / np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_ + nw_ * nw_)
-        qx, qy, qz, qw = nx_ * nrm, ny_ * nrm, nz_ * nrm, nw_ * nrm
-    q[0, e], q[1, e], q[2, e], q[3, e] = qx, qy, qz, qw
-    _quat_mat(qx, qy, qz, qw, R)
-
-
-@njit(cache=True, fastmath=_FM)
-def _pk1(law, F, R, mu, lam, stiffening, P):
-    """First Piola-Kirchhoff stress of the element's law into P (9,), Pa."""
-    if law == 0:
-        tr = -3.0
-        for c in range(9):
-            tr += R[c] * F[c]
-        for c in range(9):
-            P[c] = 2.0 * mu * (F[c] - R[c]) + lam * tr * R[c]
-        return
-    f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
-    c0 = f4 * f8 - f5 * f7
-    c1 = f5 * f6 - f3 * f8
-    c2 = f3 * f7 - f4 * f6
-    c3 = f2 * f7 - f1 * f8
-    c4 = f0 * f8 - f2 * f6
-    c5 = f1 * f6 - f0 * f7
-    c6 = f1 * f5 - f2 * f4
-    c7 = f2 * f3 - f0 * f5
-    c8 = f0 * f4 - f1 * f3
-    J = f0 * c0 + f1 * c1 + f2 * c2
-    lam_s = lam + mu
-    g = lam_s * (J - (1.0 + mu / lam_s))
-    m = mu
-    if law == 2:
-        ic = f0 * f0 + f1 * f1 + f2 * f2 + f3 * f3 + f4 * f4 + f5 * f5 + f6 * f6 + f7 * f7 + f8 * f8
-        hy = 2.0 * stiffening * mu * (ic - 1.0 - 2.0 * J)
-        m = mu + hy
-        g = g - hy
-    P[0] = m * f0 + g * c0
-    P[1] = m * f1 + g * c1
-    P[2] = m * f2 + g * c2
-    P[3] = m * f3 + g * c3
-    P[4] = m * f4 + g * c4
-    P[5] = m * f5 + g * c5
-    P[6] = m * f6 + g * c6
-    P[7] = m * f7 + g * c7
-    P[8] = m * f8 + g * c8
-
-
 @njit(cache=True, fastmath=_FM)
 def _forces(x, v, tets, grad_n, volume, mu, lam, law, stiffening, q, iterations, beta,
             term_tau, term_k, eps_v, eps_v_new, dt, f):
@@ -255,14 +77,14 @@ def _forces(x, v, tets, grad_n, volume, mu, lam, law, stiffening, q, iterations,
                 F[3 * i + k] = (xa[0, i] * grad_n[e, 0, k] + xa[1, i] * grad_n[e, 1, k]
                                 + xa[2, i] * grad_n[e, 2, k] + xa[3, i] * grad_n[e, 3, k])
         if iterations > 0:
-            _polar(F, q, e, iterations, R)
+            polar_update(F, q, e, iterations, R)
         else:
             for c in range(9):
                 R[c] = 0.0
             R[0] = 1.0
             R[4] = 1.0
             R[8] = 1.0
-        _pk1(law, F, R, mu[e], lam[e], stiffening, P)
+        pk1_stress(law, F, R, mu[e], lam[e], stiffening, P)
         if n_terms > 0:
             # corotated small strain sym(R^T F) - I
             for i in range(3):
@@ -326,66 +148,6 @@ def _gaps(cnodes, cW, cN, sel, x, centre, radius, out):
 
 
 @njit(cache=True)
-def _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, omega, beta, w_out):
-    """The Woodbury solve of ``(A + H diag(omega) H^T) d = r + H beta`` (``H = E_uniq C``)
-    reduced to its correction: ``d = y + rows[uniq]^T w`` with ``y = A^-1 r``; ``w`` (m,)
-    is written into ``w_out``. Returns the (possibly grown) ``rows``."""
-    m = uniq.size
-    k = omega.size
-    rows = _ensure_rows(pbtrs, cbT, rows, slot, used, uniq)
-    if m == 0 or k == 0:
-        for i in range(m):
-            w_out[i] = 0.0
-        return rows
-    s = np.empty(m, dtype=np.int64)
-    for i in range(m):
-        s[i] = slot[uniq[i]]
-    Auu = np.empty((m, m))
-    for i in range(m):
-        for j in range(m):
-            Auu[i, j] = rows[s[i], uniq[j]]
-    u = C @ beta
-    yu = np.empty(m)
-    for j in range(m):
-        yu[j] = y[uniq[j]]
-    yu += Auu.T @ u
-    S = C.T @ (Auu @ C)
-    for c in range(k):
-        S[c, c] += 1.0 / omega[c]
-    t = np.linalg.solve(S, C.T @ yu)
-    w = u - C @ t
-    for i in range(m):
-        w_out[i] = w[i]
-    return rows
-
-
-@njit(cache=True)
-def _apply(rows, slot, y, uniq, w, dofs, out):
-    """``out[i] = y[dofs[i]] + sum_j w_j rows[slot[uniq_j], dofs[i]]`` (dofs: free indices)."""
-    for i in range(dofs.size):
-        out[i] = y[dofs[i]]
-    for j in range(uniq.size):
-        wj = w[j]
-        if wj == 0.0:
-            continue
-        r = rows[slot[uniq[j]]]
-        for i in range(dofs.size):
-            out[i] += wj * r[dofs[i]]
-
-
-@njit(cache=True)
-def _apply_full(rows, slot, y, uniq, w, out):
-    out[:] = y
-    for j in range(uniq.size):
-        wj = w[j]
-        if wj == 0.0:
-            continue
-        r = rows[slot[uniq[j]]]
-        for i in range(out.size):
-            out[i] += wj * r[i]
-
-
-@njit(cache=True)
 def _tangents(n):
     """Two unit tangents of each normal (k, 3), as ``solver._tangents``."""
     k = n.shape[0]
@@ -417,14 +179,21 @@ def _point_velocity(cnodes, cW, c, v):
 
 
 @njit(cache=True)
-def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
-          dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X,
-          pbtrs, cbT, rows, slot, used,
-          tris, kc, margin, contact_iterations, tolerance, friction, slip_speed,
-          centre, radius, vp, x, v, q, eps_v, force_out):
+def _step(mdl, pbtrs, cbT, rows, slot, used, centre, radius, vp, x, v, q, eps_v, force_out,
+          dmdl, dc, dvp, dx, dv, dq, deps, dforce_out):
     """One implicit-Euler step (see :func:`core.simulation.solver.step`), in place on
     ``x, v, q, eps_v``; the probe's force on the phantom (3,) N into ``force_out``.
+
+    ``mdl`` is the model tuple of :func:`advance`. With p > 0 tangent directions, their
+    state ``dx, dv`` (p, N, 3), ``dq`` (p, 4, E), ``deps`` (p, T, 9, E) is advanced too
+    (in place) from the model's derivatives ``dmdl`` and the probe centre's ``dc`` and
+    velocity's ``dvp`` (p, 3); the force's derivative (p, 3) goes into ``dforce_out``.
     Returns ``(rows, number of active contacts)``."""
+    (tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k, dt, alpha, beta,
+     newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X, tris, kc, margin,
+     contact_iterations, tolerance, friction, slip_speed, k_lhs) = mdl
+    dmu, dlam, dkc, db, dS, dmuf, dtau, dk, dk_lhs, drho = dmdl
+    p = dx.shape[0]
     N = x.shape[0]
     nf = free_dofs.size
     x0 = x.copy()
@@ -436,6 +205,7 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
     xp = np.empty((N, 3))
     r = np.empty(nf)
     dv_full = np.empty(nf)
+    dv_n = np.empty(nf)
     has_body = np.any(body_force != 0.0)
     has_support = np.any(support != 0.0)
     # candidate contacts (frozen at the first correction's positions)
@@ -446,19 +216,36 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
     cnodes = np.zeros((0, 3), dtype=np.int64)
     active = np.zeros(0, dtype=np.bool_)
     sel = np.zeros(0, dtype=np.int64)  # the contacts of the last pass
-    n_blocks = 1
     # friction rows of the last correction: (k_t,) contact index, direction, omega
     fr_c = np.zeros(0, dtype=np.int64)
     fr_dir = np.zeros((0, 3))
     fr_om = np.zeros(0)
     x_try = np.empty((N, 3))
+    # tangents
+    dvg = dv.copy()
+    df_el = np.empty((p, N, 3))
+    dq1 = np.empty_like(dq)
+    deps1 = np.empty_like(deps)
+    dW = np.zeros((p, 0, 3))
+    dN = np.zeros((p, 0, 3))
+    dA = np.zeros((p, 0))
+    tfr_c = np.zeros(0, dtype=np.int64)
+    tfr_dir = np.zeros((0, 3))
+    dfr_om = np.zeros((p, 0))
+    dfr_dir = np.zeros((p, 0, 3))
     for it in range(newton_iterations):
         for i in range(N):
             for d in range(3):
                 xp[i, d] = x0[i, d] + dt * vg[i, d]
-        q[:] = q0
-        _forces(xp, vg, tets, grad_n, volume, mu, lam, law, stiffening, q, polar_iterations, beta,
-                term_tau, term_k, eps_v, eps_new, dt, f)
+        if p == 0:
+            q[:] = q0
+            _forces(xp, vg, tets, grad_n, volume, mu, lam, law, stiffening, q, polar_iterations, beta,
+                    term_tau, term_k, eps_v, eps_new, dt, f)
+        else:  # the forces and their derivatives in one pass
+            dxp = dx + dt * dvg
+            element_forces_tangent(xp, vg, dxp, dvg, tets, grad_n, volume, mu, lam, dmu, dlam, law, stiffening,
+                                   q0, dq, polar_iterations, beta, term_tau, term_k, dtau, dk, eps_v, deps, dt,
+                                   q, dq1, deps1, df_el, f, eps_new)
         if has_body:
             f += body_force
         if has_support:
@@ -480,6 +267,15 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
             g0 = np.empty(cidx.size)
             _gaps(cnodes, cW, cN, allc, xp, centre, radius, g0)
             active = g0 > 0.0
+            if p > 0:
+                dW = np.empty((p, cidx.size, 3))
+                dN = np.empty((p, cidx.size, 3))
+                dA = np.empty((p, cidx.size))
+                contact_geometry_tangent(xp, dx + dt * dvg, centre, dc, cnodes, cW, cN, dW, dN, dA)
+                tfr_c = np.empty(2 * cidx.size, dtype=np.int64)
+                tfr_dir = np.empty((2 * cidx.size, 3))
+                dfr_om = np.empty((p, 2 * cidx.size))
+                dfr_dir = np.empty((p, 2 * cidx.size, 3))
         nc = cidx.size
         y = r.copy()
         band_solve(pbtrs, cbT, y)
@@ -515,10 +311,10 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
                 bc[i] = dt * kc * cA[sel[i]] * gs[i]
             uniq, C = constraint_matrix(cnodes[sel], cW[sel], cN[sel], free_index, scratch)
             w = np.empty(uniq.size)
-            rows = _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
+            rows = woodbury_weights(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
             if nc == 0:
                 break
-            _apply(rows, slot, y, uniq, w, cd, dv_c)
+            apply_rows(rows, slot, y, uniq, w, cd, dv_c)
             x_try[:] = xp
             for i in range(ncd):
                 dof = free_dofs[cd[i]]
@@ -536,6 +332,8 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
                     active[c] = not active[c]
         k = sel.size
         fr_c = np.zeros(0, dtype=np.int64)
+        if p > 0:
+            apply_rows_full(rows, slot, y, uniq, w, dv_n)
         if friction > 0.0 and k > 0:
             # Coulomb friction bounded by the normal force this step's contact solve found
             gt = np.empty(k)
@@ -590,8 +388,16 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
                     fr_om[tt * kt + jj] = wt[i]
             uniq, C = constraint_matrix(bn, bw, bd, free_index, scratch)
             w = np.empty(uniq.size)
-            rows = _woodbury(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
-        _apply_full(rows, slot, y, uniq, w, dv_full)
+            rows = woodbury_weights(pbtrs, cbT, rows, slot, used, y, uniq, C, om, bc, w)
+        apply_rows_full(rows, slot, y, uniq, w, dv_full)
+        if p > 0:
+            rows, n_rows = iteration_tangent(
+                pbtrs, cbT, rows, slot, used, free_dofs, free_index, scratch,
+                tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
+                dt, alpha, beta, mass3, support, X, k_lhs, kc, friction, slip_speed,
+                xp, vg, v0, q0, eps_v, centre, vp, radius, cnodes, cW, cN, cA, sel, dv_n, dv_full,
+                dx, dv, dvg, dq, deps, dW, dN, dA, dmu, dlam, dkc, db, dS, dmuf, dtau, dk, dk_lhs, dc, dvp, drho,
+                df_el, tfr_c, tfr_dir, dfr_om, dfr_dir)
         for j in range(nf):
             dof = free_dofs[j]
             vg[dof // 3, dof % 3] += dv_full[j]
@@ -618,29 +424,50 @@ def _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term
             rel = (fr_dir[i, 0] * (vp[0] - p0) + fr_dir[i, 1] * (vp[1] - p1) + fr_dir[i, 2] * (vp[2] - p2))
             for d in range(3):
                 force_out[d] += (fr_om[i] / dt) * rel * fr_dir[i, d]
+    if p > 0:
+        for t in range(p):
+            for i in range(N):
+                for d in range(3):
+                    dx[t, i, d] = dx[t, i, d] + dt * dvg[t, i, d]
+                    dv[t, i, d] = dvg[t, i, d]
+        dq[:] = dq1
+        if deps.size:
+            deps[:] = deps1
+        nr = fr_c.size
+        contact_force_tangent(x, v, dx, dv, centre, dc, radius, drho, vp, dvp, kc, dkc, dt, cnodes, cW, cN, cA,
+                              dW, dN, dA, sel, fr_c, fr_dir, fr_om, dfr_om[:, :nr], dfr_dir[:, :nr], dforce_out)
     return rows, k
 
 
 @njit(cache=True)
-def advance(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
-            dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X,
-            pbtrs, cbT, rows, slot, used,
-            tris, kc, margin, contact_iterations, tolerance, friction, slip_speed,
-            centres, radius, x, v, q, eps_v,
-            times, step_t, k_of, k_begin, resume, j_begin, j_stop, out_x, out_f, prev_x, prev_f,
-            limit, force):
+def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
+            times, step_t, k_of, k_begin, resume, j_begin, j_stop, out_x, out_f, prev_x, prev_f, limit, force,
+            dmdl, dcentres, dx, dv, dq, deps, dout_x, dout_f, dprev_x, dprev_f, dforce):
     """Step from step ``k_begin`` (already taken when ``resume``: its pending frames are
     recorded first) until every step is taken or frame ``j_stop - 1`` is recorded.
 
-    Frames ``j`` with ``k_of[j] == k`` are interpolated between the states before and
+    ``mdl``: the model as a tuple ``(tets, grad_n, volume, mu, lam, law, stiffening,
+    polar_iterations, term_tau, term_k, dt, alpha, beta, newton_iterations, mass3,
+    free_dofs, free_index, scratch, body_force, support, X, tris, kc, margin,
+    contact_iterations, tolerance, friction, slip_speed, k_lhs)`` (see
+    :class:`core.simulation.model.Model`); ``centres`` (K + 1, 3) the probe centre at every
+    step. Frames ``j`` with ``k_of[j] == k`` are interpolated between the states before and
     after step ``k`` into ``out_x`` (F, N, 3) and ``out_f`` (F, 3); ``prev_x``/``prev_f``
     hold the state before the current step (updated in place). Divergence is checked on
     every fifth step and the last, as in :func:`core.simulation.solver.simulate`.
+
+    Tangents (p directions, p may be 0): the model's derivatives ``dmdl = (dmu, dlam,
+    dkc, db, dS, dmuf, dtau, dk, dk_lhs, drho)``, the probe centres' ``dcentres`` (p, K + 1,
+    3), the state's ``dx, dv, dq, deps`` (in place), recorded into ``dout_x`` (p, F, N, 3)
+    and ``dout_f`` (p, F, 3) as the forward values.
 
     Returns:
         (status, last step taken, next frame to record, largest displacement from rest
         (m) at the last check, rows).
     """
+    dt = mdl[10]
+    X = mdl[20]
+    p = dx.shape[0]
     n_steps = step_t.size - 1
     F = times.size
     j = j_begin
@@ -651,22 +478,32 @@ def advance(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, te
             a = (times[j] - step_t[k - 1]) / dt
             out_f[j] = (1 - a) * prev_f + a * force
             out_x[j] = (1 - a) * prev_x + a * x
+            for t in range(p):
+                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t]
+                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t]
             j += 1
             if j >= j_stop:
                 prev_x[:] = x
                 prev_f[:] = force
+                dprev_x[:] = dx
+                dprev_f[:] = dforce
                 return STATUS_STOPPED, k, j, disp, rows
         prev_x[:] = x
         prev_f[:] = force
+        dprev_x[:] = dx
+        dprev_f[:] = dforce
     vp = np.empty(3)
+    dc = np.empty((p, 3))
+    dvp = np.empty((p, 3))
     for kk in range(k + 1, n_steps + 1):
         k = kk
         for d in range(3):
             vp[d] = (centres[k, d] - centres[k - 1, d]) / dt
-        rows, _ = _step(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k,
-                        dt, alpha, beta, newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support,
-                        X, pbtrs, cbT, rows, slot, used, tris, kc, margin, contact_iterations, tolerance, friction,
-                        slip_speed, centres[k], radius, vp, x, v, q, eps_v, force)
+            for t in range(p):
+                dc[t, d] = dcentres[t, k, d]
+                dvp[t, d] = (dcentres[t, k, d] - dcentres[t, k - 1, d]) / dt
+        rows, _ = _step(mdl, pbtrs, cbT, rows, slot, used, centres[k], radius, vp, x, v, q, eps_v, force,
+                        dmdl, dc, dvp, dx, dv, dq, deps, dforce)
         if k % 5 == 0 or k == n_steps:
             disp = 0.0
             finite = True
@@ -686,9 +523,14 @@ def advance(tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, te
             a = (times[j] - step_t[k - 1]) / dt
             out_f[j] = (1 - a) * prev_f + a * force
             out_x[j] = (1 - a) * prev_x + a * x
+            for t in range(p):
+                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t]
+                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t]
             j += 1
             if j >= j_stop:
                 return STATUS_STOPPED, k, j, disp, rows
         prev_x[:] = x
         prev_f[:] = force
+        dprev_x[:] = dx
+        dprev_f[:] = dforce
     return STATUS_OK, k, j, disp, rows

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from core.diagnosis import KINDS, PHASES, FieldLayout, candidates, phase_labels
-from core.diagnosis.fields import frame_bins, residual_field
+from core.diagnosis.fields import FACES, face_residuals, frame_bins, residual_field
 from core.simulation import box_mesh, effect_from_dict
 
 SIZE = (0.0687, 0.0393, 0.0358)
@@ -132,3 +132,25 @@ def test_bin_normals_point_out_of_their_faces():
     assert np.array_equal(n[face == 0], np.tile([0.0, 0.0, 1.0], ((face == 0).sum(), 1)))
     assert np.array_equal(n[face == 1], np.tile([-1.0, 0.0, 0.0], ((face == 1).sum(), 1)))
     assert np.array_equal(lay.index(c - 1e-5 * n), np.arange(lay.n_bins))  # just inside: each bin finds itself
+
+
+def test_field_derivative_is_the_central_difference_of_the_field():
+    """The residual field's derivative along node motions (the diagnosis's Jacobians are
+    built from it) against a central difference of the field itself, on every face; the
+    residual is bilinear within a point's cells, so a 1e-9 step is exact to rounding."""
+    from core.diagnosis.fields import face_residuals_tangent
+
+    rng = np.random.default_rng(4)
+    grid = (13, 5, 5)
+    rest = box_mesh(SIZE, grid).nodes
+    pos = rest[None] + 1e-3 * rng.standard_normal((3,) + rest.shape)
+    d = rng.standard_normal((2,) + pos.shape)
+    pts = rng.uniform(0.05, 0.95, (2000, 3)) * np.asarray(SIZE)
+    frames = rng.integers(0, 3, 2000)
+    for face in FACES:
+        dr = face_residuals_tangent(pts, pos, d, grid, SIZE, face, frames)
+        for t in range(2):
+            h = 1e-9
+            fd = (face_residuals(pts, pos + h * d[t], grid, SIZE, face, frames=frames)
+                  - face_residuals(pts, pos - h * d[t], grid, SIZE, face, frames=frames)) / (2 * h)
+            assert np.abs(dr[t] - fd).max() <= 1e-6 * np.abs(fd).max(), face
