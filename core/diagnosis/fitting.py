@@ -109,7 +109,13 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     i = int(np.argmin(misfits))
     x, raw_x = starts[i], raw(runs0[i])
     r_x = raw_x if nuisance is None else nuisance.project(raw_x)
-    J = J_raw = None
+    def jacobian_at(x):
+        """(raw vector, its exact Jacobian) at x: one replay differentiated along every variable."""
+        d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs)
+        rj = eng.jacobian_runs([d], "train", fine=fine)[0]
+        return raw(rj), eng.jacobian(rj, shifted=not fine)
+
+    J = J_raw = J_next = None
     for _ in range(eng.cfg.lm_iterations if iterations is None else iterations):
         if not np.all(np.isfinite(r_x)) or x.size == 0:
             break
@@ -119,9 +125,10 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             xj[j] = x[j] + h if x[j] + h <= cand.upper[j] else x[j] - h
             pts.append(xj)
         if eng.cfg.sensitivities:
-            # the exact Jacobian: the replay at x differentiated along every variable
-            d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs)
-            J_raw = eng.jacobian(eng.jacobian_runs([d], "train", fine=fine)[0], shifted=not fine)
+            # the exact Jacobian: the replay at x differentiated along every variable (the
+            # accepted trial step of the last iteration already was)
+            J_raw = J_next if J_next is not None else jacobian_at(x)[1]
+            J_next = None
         elif fit_youngs and semi_analytic:
             # the log10 E column is semi-analytic: with every stiffness proportional to E
             # (the contact's too), the quasi-static force is proportional to E at a fixed
@@ -160,10 +167,14 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             # grid a replay costs ~20 coarse ones, and fits of one to three variables are
             # close to linear
             for x_try in steps_lm:
-                raw_try = raw(runs([x_try])[0])
+                if eng.cfg.sensitivities:  # the trial's Jacobian serves the next iteration if it is taken
+                    raw_try, J_try = jacobian_at(x_try)
+                else:
+                    raw_try, J_try = raw(runs([x_try])[0]), None
                 r_try = raw_try if nuisance is None else nuisance.project(raw_try)
                 if rss(r_try) < previous:
                     accepted = (x_try, r_try, raw_try)
+                    J_next = J_try
                     break
         elif steps_lm:
             # fits of four variables or more (an inclusion): all of them are replayed and the
