@@ -50,6 +50,8 @@ class Directions:
     x: np.ndarray
     youngs_modulus: float
     fit_youngs: bool = False
+    simulation: tuple = ()
+    """``SimulationConfig`` fields changed from the run's default (as :class:`Spec`'s)."""
 
     @property
     def theta(self) -> np.ndarray:
@@ -283,7 +285,7 @@ class Evidence:
     def jacobian_runs(self, directions: Sequence[Directions], role: str, *, fine: bool = False) -> list[list[FieldRun]]:
         """Field runs at each ``directions``' parameters on every sequence of ``role``, with
         their derivatives along them (:class:`FieldRun` ``jac_*``; see :meth:`jacobian`)."""
-        items = [(Spec(d.effects(d.theta), d.youngs(d.theta)), d) for d in directions]
+        items = [(Spec(d.effects(d.theta), d.youngs(d.theta), simulation=d.simulation), d) for d in directions]
         return self._runs(items, role, False, fine)
 
     def _runs(self, items, role, paper, fine):

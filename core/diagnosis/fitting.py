@@ -85,9 +85,12 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
         head = x[:nv] if cand is None else cand.clip(x[:nv])
         return np.concatenate([head, np.clip(x[nv:], lo_E, hi_E)])
 
+    # fits on the fine grid step at cfg.fine_fit_dt (its reported runs at the simulator's default)
+    sim = (("dt", float(eng.cfg.fine_fit_dt)),) if fine and eng.cfg.fine_fit_dt else ()
+
     def spec(x) -> Spec:
         eff = [] if cand is None else [cand.to_effect(x[:nv])]
-        return Spec(tuple(fixed) + tuple(eff), float(10.0 ** x[nv]) if fit_youngs else E0)
+        return Spec(tuple(fixed) + tuple(eff), float(10.0 ** x[nv]) if fit_youngs else E0, simulation=sim)
 
     def runs(xs):
         return eng.runs([spec(x) for x in xs], "train", fine=fine)
@@ -111,7 +114,7 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     r_x = raw_x if nuisance is None else nuisance.project(raw_x)
     def jacobian_at(x):
         """(raw vector, its exact Jacobian) at x: one replay differentiated along every variable."""
-        d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs)
+        d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs, simulation=sim)
         rj = eng.jacobian_runs([d], "train", fine=fine)[0]
         return raw(rj), eng.jacobian(rj, shifted=not fine)
 

@@ -198,7 +198,7 @@ def _equilibrium_tangent(model: Model, state: State, dm: ModelDerivatives, *, to
     f = np.empty((N, 3))
     eps_new = np.empty((T, 9, E))
     x = np.ascontiguousarray(state.x)
-    scale = max(float(np.abs(dm.body_force).max(initial=0.0)), 1e-30)
+    scale = None
     for _ in range(max_iterations):
         element_forces_tangent(x, zeros_v, dx, np.zeros((p, N, 3)), model.mesh.tets, el.grad_n, el.volume, model.mu,
                                model.lam, dm.mu, dm.lam, law, float(model.material.stiffening), state.q, dq0, iters,
@@ -206,7 +206,9 @@ def _equilibrium_tangent(model: Model, state: State, dm: ModelDerivatives, *, to
         g = df + dm.body_force - dm.support_stiffness[:, :, None] * (x - model.mesh.nodes)[None] \
             - model.support_stiffness[None, :, None] * dx
         gf = g.reshape(p, -1)[:, dofs]
-        if np.abs(gf).max(initial=0.0) <= tol * scale:
+        if scale is None:  # the first residual is the right-hand side: d(body force) + df/dtheta
+            scale = np.maximum(np.abs(gf).max(axis=1, initial=0.0), 1e-300)
+        if np.all(np.abs(gf).max(axis=1, initial=0.0) <= tol * scale):
             break
         step = lu.solve(np.ascontiguousarray(gf.T)).T
         flat = dx.reshape(p, -1)

@@ -44,6 +44,8 @@ CASES = {
     "youngs_poisson": (lambda th: ([], 10 ** th[0], th[1]), [np.log10(5000.0), 0.44], [0.02, 0.01], "corotational", {}),
     "gravity": (lambda th: ([{"kind": "gravity", "g": [th[0], th[1], th[2]]}], 5000.0, 0.44),
                 [0.5, -0.3, -9.81], [1.0, 1.0, 1.0], "corotational", {}),
+    "gravity_youngs": (lambda th: ([{"kind": "gravity", "g": [0.0, 0.0, th[0]]}], 10 ** th[1], 0.44),
+                       [-9.81, np.log10(5000.0)], [1.0, 0.02], "corotational", {}),
     "inclusion": (lambda th: (_inclusion(th), 5000.0, 0.44), [0.031, 0.019, 0.024, 0.008, np.log10(4.0)],
                   [0.002, 0.002, 0.002, 0.001, 0.1], "corotational", {}),
     "viscoelasticity": (lambda th: ([{"kind": "viscoelasticity", "relaxation_time": 10 ** th[0],
