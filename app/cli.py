@@ -102,7 +102,6 @@ def cmd_generate(args) -> int:
 def _replay_config(args):
     from core.simulation import SimulationConfig, effect_from_dict
     from core.simulation.replay import ReplayConfig
-
     sim = SimulationConfig(dt=args.dt) if getattr(args, "dt", None) else SimulationConfig()
     effects = tuple(effect_from_dict(e) for e in _parse_effects(getattr(args, "effects", None)))
     return ReplayConfig(
@@ -138,7 +137,6 @@ def _print_replay(result, title: str) -> None:
 
 def _run_replay(session: Path, out: Path, config, title: str):
     from core.simulation.replay import replay, write_replay
-
     with _progress(f"replaying {session.name}") as cb:
         result = replay(session, config, callback=cb)
     write_replay(result, out)
@@ -222,8 +220,8 @@ def cmd_sweep(args) -> int:
     from rich.table import Table
 
     from core.identification import executor, sweep, write_sweep
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     youngs = _parse_youngs(args.youngs)
     with _progress("calibrating and cleaning") as cb:
         prepared = prepare_session(args.session, ReplayConfig(grid=tuple(args.grid)), callback=cb)
@@ -242,8 +240,8 @@ def cmd_sweep(args) -> int:
 
 def cmd_fit(args) -> int:
     from core.identification import executor, fit_youngs_modulus
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     with _progress("calibrating and cleaning") as cb:
         prepared = prepare_session(args.session, ReplayConfig(grid=tuple(args.grid)), callback=cb)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _trial_progress("fit: E values evaluated") as pr:

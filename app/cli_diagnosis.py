@@ -63,8 +63,8 @@ def cmd_plan(args) -> int:
     from core.diagnosis.planner import PlanLimits, plan_experiment, write_plan
     from core.errors import TissueTwinError
     from core.identification import executor
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     config = DiagnosisConfig(use_force=False if args.no_force else None)
     limits = PlanLimits(max_depth=args.max_depth, speed=args.speed, duration=args.duration)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"planning {Path(args.session).name}") as cb:
@@ -106,8 +106,8 @@ def _diagnose_with_network(args, config, ex, cb):
     from core.diagnosis import diagnose_prepared
     from core.diagnosis.explain import explain_diagnosis
     from core.learning import build_frames, correction_field, load_checkpoint
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     ck = load_checkpoint(args.network)  # first: a bad checkpoint fails before minutes of work
     prepared = prepare_session(args.session, ReplayConfig(grid=config.grid), callback=lambda f, m: cb(0.05 * f, m))
     diag = diagnose_prepared(prepared, config, executor=ex, callback=lambda f, m: cb(0.05 + 0.85 * f, m))

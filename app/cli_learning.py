@@ -31,8 +31,8 @@ def _train_config(args):
 def _prepare(args):
     from app.cli import _progress
     from core.io import read_session
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     session = read_session(args.session)
     names = tuple(args.sequences) if args.sequences else None
     with _progress("calibrating and cleaning") as cb:

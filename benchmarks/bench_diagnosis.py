@@ -79,8 +79,8 @@ def learned_gain(session: Path, youngs: float, cfg: DiagnosisConfig) -> tuple[fl
         on the paper's point-to-mesh error over the session's test sequences.
     """
     from core.learning import NetworkConfig, TrainConfig, train_and_test
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     config = ReplayConfig(youngs_modulus=youngs, poisson_ratio=cfg.poisson_ratio, law=cfg.law,
                           grid=cfg.fine_grid or cfg.grid)
     prepared = prepare_session(session, config)

@@ -13,9 +13,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from core.identification import PAPER_COARSE, Trial, executor, fit_youngs_modulus, sweep
-from core.simulation.replay import prepare_session
-
-
+from core.preparation import prepare_session
 def main() -> None:
     from core.lab import PRESETS, generate_session
 

@@ -203,8 +203,8 @@ def bench_table3(preset: str, out: Path, args) -> dict:
     from core.lab import generate_session
     from core.learning import NetworkConfig, TrainConfig, evaluate_networks, write_evaluation
     from core.simulation import effect_from_dict
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     session = Path(args.session) if args.session else out / f"{preset}-session"
     t0 = time.perf_counter()
     if not (session / "session.json").exists():

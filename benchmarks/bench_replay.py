@@ -59,7 +59,6 @@ def bench_grid(grid, path, frames, config) -> None:
 
 def bench_session(path: str) -> None:
     from core.simulation.replay import replay
-
     res = replay(path)
     frames = sum(s.frame_times.size for s in res.sequences.values())
     print(f"session {path}: {len(res.sequences)} sequences, {frames} frames; stage timings (s): "

@@ -13,6 +13,13 @@ import pytest
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+# The preparation cache (core.preparation) of the test run lives in one temporary folder,
+# shared by both test workers and the processes they start, and never in the user's home.
+if "TISSUETWIN_CACHE_DIR" not in os.environ:
+    import tempfile
+
+    os.environ["TISSUETWIN_CACHE_DIR"] = tempfile.mkdtemp(prefix="tissuetwin-test-cache-")
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT.parent / "shared" / "sample-session"
 

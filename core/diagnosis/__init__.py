@@ -47,8 +47,8 @@ def diagnose(session: str | Path, config: DiagnosisConfig | None = None, *, exec
         SessionFormatError, RegistrationError, CleaningError: bad input.
         TissueTwinError: a session without train, validation or test sequences.
     """
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     config = config or DiagnosisConfig()
     say = callback or (lambda f, m: None)
     prepared = prepare_session(session, ReplayConfig(grid=config.grid), callback=lambda f, m: say(0.1 * f, m))

@@ -60,8 +60,8 @@ from core.identification.execution import Executor, SerialExecutor
 from core.identification.fit import fit_youngs_modulus
 from core.identification.trials import Trial
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
-from core.simulation.replay import PreparedSession
-
+from core.preparation import PreparedSession
+from core.simulation.replay import noise_floor
 __all__ = ["DiagnosisConfig", "CauseReport", "Detectability", "Diagnosis", "diagnose_prepared", "detectability"]
 
 Callback = Callable[[float, str], None]
@@ -439,7 +439,7 @@ def diagnose_prepared(
     say(1.0, "done")
     return Diagnosis(
         session=prepared.path, config=cfg, noise_sigma=math.sqrt(sigma2),
-        noise_floor=float(prepared.noise_floor(cfg.fine_grid or cfg.grid)), youngs=youngs, baseline_test_error=b_err,
+        noise_floor=float(noise_floor(prepared, cfg.fine_grid or cfg.grid)), youngs=youngs, baseline_test_error=b_err,
         causes=causes, candidates=reports, confounded=confounded,
         extended_kinds=[c.kind for c in causes], extended_effects=ext_effects,
         extended_test_error=e_err, extended_gain=gain, gain_interval=gain_iv,

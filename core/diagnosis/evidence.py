@@ -24,7 +24,8 @@ from core.errors import TissueTwinError
 from core.identification.execution import Executor
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
-from core.simulation.replay import PreparedSession, build_replay_model, frame_errors
+from core.preparation import PreparedSession
+from core.simulation.replay import build_replay_model, frame_errors
 from core.simulation.effects import FitSpace
 from core.simulation.sensitivity import simulate_sensitivities
 from core.simulation.solver import simulate

@@ -34,7 +34,8 @@ import numpy as np
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.simulation import effect_from_dict
-from core.simulation.replay import PreparedSession, ReplayConfig, build_replay_model
+from core.preparation import PreparedSession
+from core.simulation.replay import ReplayConfig, build_replay_model
 from core.simulation.solver import simulate
 
 __all__ = ["CauseShare", "CorrectionExplanation", "explain_correction", "explain_diagnosis"]

@@ -46,9 +46,8 @@ from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.lab.probing import ProbeTrajectory, penetration_depth
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
-from core.simulation.probe import ProbePath
-from core.simulation.replay import PreparedSequence, PreparedSession
-
+from core.preparation.probe import ProbePath
+from core.preparation import PreparedSequence, PreparedSession
 __all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_experiment", "write_plan", "NOMINAL_FORCE_NOISE"]
 
 MIN_JERK_PEAK = 15.0 / 8.0

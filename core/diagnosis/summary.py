@@ -13,8 +13,7 @@ from core.diagnosis.fields import FACES, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
 from core.lab.probing import penetration_depth
 from core.simulation.effects import FitSpace
-from core.simulation.replay import PreparedSession
-
+from core.preparation import PreparedSession
 __all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation"]
 
 

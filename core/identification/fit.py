@@ -46,8 +46,8 @@ from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.sweep import PAPER_COARSE
 from core.identification.trials import Trial, TrialResult, run_trial
-from core.simulation.replay import PreparedSession
-
+from core.preparation import PreparedSession
+from core.simulation.replay import noise_floor
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
 
 Progress = Callable[[float, str], None]
@@ -324,7 +324,7 @@ def fit_youngs_modulus(
         raise TissueTwinError("the session has no 'train' sequence to fit on")
     has_force = all(prepared.sequences[n].force is not None for n in names)
     use_force = has_force if use_force is None else (use_force and has_force)
-    d0 = _top_noise(prepared, names, base.grid) if metric == "top" else prepared.noise_floor(base.grid)
+    d0 = _top_noise(prepared, names, base.grid) if metric == "top" else noise_floor(prepared, base.grid)
     if not np.isfinite(d0) or d0 <= 0:
         d0 = 1e-3
     f0 = _force_noise(prepared, names) if use_force else None

@@ -13,8 +13,7 @@ import numpy as np
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.trials import Trial, TrialResult, run_trial
-from core.simulation.replay import PreparedSession
-
+from core.preparation import PreparedSession
 __all__ = ["PAPER_COARSE", "refine_grid", "SweepResult", "sweep", "write_sweep"]
 
 PAPER_COARSE = (1e1, 1e2, 1e3, 1e4, 1e5, 1e6)

@@ -9,8 +9,8 @@ import numpy as np
 
 from core.identification.residuals import top_residuals
 from core.simulation import SimulationConfig, effect_from_dict
-from core.simulation.replay import PreparedSession, ReplayConfig, replay_sequence
-
+from core.preparation import PreparedSession
+from core.simulation.replay import ReplayConfig, replay_sequence
 __all__ = ["Trial", "TrialResult", "run_trial"]
 
 

@@ -54,6 +54,7 @@ from core.io.ply import check_ply, read_ply, write_ply
 
 __all__ = [
     "FORMAT",
+    "read_cloud",
     "ROLES",
     "CORNER_LABELS",
     "PhantomSpec",
@@ -511,6 +512,23 @@ def _check_cloud_metres(path: Path, points: np.ndarray) -> None:
         )
 
 
+def read_cloud(path: str | os.PathLike) -> np.ndarray:
+    """One depth cloud file (a PLY of the session format), read and checked.
+
+    Returns:
+        ``points_camera``: (N, 3) float64, m, camera frame (non-finite points dropped), N >= 1.
+
+    Raises:
+        MissingFileError: the file is gone.
+        PlyError: malformed, truncated or empty PLY, no float x, y, z.
+        UnitsError: median point distance from the camera > 5 m (millimetres).
+    """
+    path = Path(path)
+    points = read_ply(path)
+    _check_cloud_metres(path, points)
+    return points
+
+
 def _check_points_arg(points: Any) -> np.ndarray:
     """Writer argument check: (N, 3) finite, N >= 1 (ValueError otherwise)."""
     pts = np.asarray(points, dtype=np.float64)
@@ -945,10 +963,7 @@ class Sequence:
             PlyError: malformed, truncated or empty PLY, no float x, y, z.
             UnitsError: median point distance from the camera > 5 m (millimetres).
         """
-        path = self.cloud_path(i)
-        points = read_ply(path)
-        _check_cloud_metres(path, points)
-        return points
+        return read_cloud(self.cloud_path(i))
 
     def clouds(self) -> Iterator[tuple[int, float, np.ndarray]]:
         """Iterate ``(frame number, t [s], points_camera (N, 3) float64 m)`` in file

@@ -131,7 +131,6 @@ def mean_error(positions: np.ndarray, clouds, grid, factor: int = 3) -> tuple[fl
         (mean m or NaN when any frame is non-finite, (F,) per-frame means m, number of points).
     """
     from core.simulation.replay import frame_errors
-
     per_frame, dists = frame_errors(positions, tuple(grid), clouds, factor)
     d = np.concatenate(dists) if dists else np.zeros(0)
     mean = float(d.mean()) if d.size and np.all(np.isfinite(d)) else float("nan")

@@ -54,7 +54,6 @@ class Checkpoint:
         """The :class:`core.simulation.replay.ReplayConfig` of the training simulation."""
         from core.simulation import SimulationConfig, effect_from_dict
         from core.simulation.replay import ReplayConfig
-
         r = dict(self.replay)
         cfg = ReplayConfig(
             youngs_modulus=float(r["youngs_modulus"]),

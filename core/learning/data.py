@@ -168,7 +168,6 @@ def build_frames(
     """
     from core.io import read_session
     from core.simulation.replay import build_replay_model, replay_sequence
-
     names = list(prepared.sequences) if names is None else list(names)
     unknown = [n for n in names if n not in prepared.sequences]
     if unknown:

@@ -122,7 +122,8 @@ def _segment_plane(points: np.ndarray, threshold: float, iterations: int, seed: 
             break
         sub = points[inliers]
         c = sub.mean(axis=0)
-        n = np.linalg.svd(sub - c, full_matrices=False)[2][2]
+        d = sub - c
+        n = np.linalg.eigh(d.T @ d)[1][:, 0]  # the scatter's least direction: the plane's normal
         if n @ plane[:3] < 0:
             n = -n
         plane = np.r_[n, -n @ c]

@@ -22,7 +22,7 @@ from core.simulation.effects import (
 )
 from core.simulation.mesh import TetMesh, box_mesh
 from core.simulation.model import Material, Model, SimulationConfig, State, build_model
-from core.simulation.probe import ProbePath
+from core.preparation.probe import ProbePath
 from core.simulation.solver import SimulationResult, StepInfo, simulate, static_equilibrium, step
 
 __all__ = [

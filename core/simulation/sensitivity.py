@@ -40,7 +40,7 @@ from core.errors import SimulationError
 from core.simulation import stepper
 from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import MaxwellArm, Model, State
-from core.simulation.probe import ProbePath
+from core.preparation.probe import ProbePath
 from core.simulation.solver import SimulationResult, divergence_message, model_tuple, static_equilibrium, step_grid
 from core.simulation.tangent import element_forces_tangent
 

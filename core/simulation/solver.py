@@ -27,7 +27,7 @@ from core.simulation import kernels
 from core.simulation.contact import Contacts, find_contacts
 from core.simulation.model import Model, State
 from core.simulation.lowrank import lapack_pbtrs
-from core.simulation.probe import ProbePath
+from core.preparation.probe import ProbePath
 
 __all__ = ["SimulationResult", "StepInfo", "StepGrid", "step", "simulate", "step_grid", "static_equilibrium",
            "internal_forces", "model_tuple", "no_tangents", "divergence_message"]

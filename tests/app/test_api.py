@@ -210,8 +210,8 @@ def test_unknown_jobs_and_artifacts_are_404(client):
 # ------------------------------------------------------------------ lifecycle
 def test_sweep_job_runs_on_dask_and_matches_core_in_process(client, session_id, small_session):
     from core.identification import sweep
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     job = submit(client, "sweep", session_id=session_id, youngs=[1e3, 1e5], sequences=["seq02"])
     assert job["status"] in ("queued", "running")
     done = wait(client, job["id"])
@@ -307,8 +307,8 @@ def test_diagnosis_corrected_mesh_is_the_replay_with_the_extended_effects(small_
     from app.server.jobs.types import _write_extended_run
     from app.viewer.data import load_run
     from core.simulation import effect_from_dict
-    from core.simulation.replay import ReplayConfig, prepare_session, replay
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig, replay
     effects = [{"kind": "gravity", "g": [0.0, 0.0, -9.81]}]
     prepared = prepare_session(small_session, ReplayConfig())
     shown = _write_extended_run(prepared, (13, 5, 5), 5000.0, effects, tmp_path / "run")

@@ -40,8 +40,8 @@ def diagnosed(tmp_path_factory):
     from core.lab import generate_session
     from core.lab.camera import Intrinsics
     from core.lab.generate import PRESETS
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     from app.server import db as dbm
     from app.server.jobs.types import DiagnoseParams, write_diagnose_artifacts
 

@@ -6,7 +6,8 @@ import pytest
 from core.diagnosis.explain import explain_correction
 from core.errors import TissueTwinError
 from core.simulation import effect_from_dict
-from core.simulation.replay import ReplayConfig, build_replay_model, prepare_session
+from core.preparation import prepare_session
+from core.simulation.replay import ReplayConfig, build_replay_model
 from core.simulation.solver import simulate
 
 GRAVITY = {"kind": "gravity", "g": [0.0, 0.0, -9.81]}

@@ -5,7 +5,7 @@ import json
 import pytest
 
 from core.identification import Trial, executor, fit_youngs_modulus
-from core.simulation.replay import prepare_session
+from core.preparation import prepare_session
 from tests._presets import SHORT_SMALL  # 6 s sequences: the fits below pass as at 10 s, in half the time
 
 

@@ -7,9 +7,7 @@ import pytest
 
 from core.identification import PAPER_COARSE, Trial, executor, refine_grid, sweep, write_sweep
 from core.simulation import SimulationConfig
-from core.simulation.replay import prepare_session
-
-
+from core.preparation import prepare_session
 @pytest.fixture(scope="module")
 def prepared(sample_session):
     return prepare_session(sample_session)

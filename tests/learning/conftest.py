@@ -28,8 +28,8 @@ def gravity_session(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def gravity_prepared(gravity_session):
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     return prepare_session(gravity_session, ReplayConfig())
 
 
@@ -37,7 +37,6 @@ def gravity_prepared(gravity_session):
 def wrong_e_config():
     from core.simulation import Gravity
     from core.simulation.replay import ReplayConfig
-
     return ReplayConfig(youngs_modulus=WRONG_E, effects=(Gravity(),))
 
 

@@ -7,7 +7,6 @@ from core.learning import NetworkConfig, build_network, load_checkpoint, save_ch
 from core.learning.config import LearningError
 from core.simulation import Gravity
 from core.simulation.replay import ReplayConfig
-
 from tests.learning.test_networks import SIZE, _inputs
 
 

@@ -8,9 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from core.io import read_session
 from core.simulation import SimulationConfig
-from core.simulation.replay import ReplayConfig, calibrate, prepare_session, replay, write_replay
-
-
+from core.preparation import calibrate, prepare_session
+from core.simulation.replay import ReplayConfig, replay, write_replay
 def _pose_error(T_est, T_true, size):
     """(max displacement over the phantom's 8 corners in m, rotation error in degrees)."""
     corners = np.array([[x, y, z] for x in (0, size[0]) for y in (0, size[1]) for z in (0, size[2])])
@@ -60,7 +59,9 @@ def test_sample_session_from_another_tool_replays(sample_session, tmp_path):
         assert s["status"] == "ok" and s["frames"] == 179
         assert s["mean_error"] < data["noise_floor"] + 0.2e-3
     assert np.array(data["calibration"]["T_phantom_robot"]).shape == (4, 4)
-    assert set(data["timings"]) >= {"load", "clean", "calibrate", "simulate", "error"}
+    # prepared here, or by an earlier test of the run and mapped from the preparation cache
+    assert set(data["timings"]) >= {"load", "simulate", "error", "cache"}
+    assert {"clean", "calibrate"} <= set(data["timings"]) or data["timings"]["cache"] < 5.0
     traj = np.load(out / "seq00.npz")
     assert traj["positions"].shape == (179, 13 * 5 * 5, 3)
     assert np.isfinite(traj["frame_errors"]).all()
@@ -86,8 +87,7 @@ def test_calibration_uses_pairs_accepted_in_the_workbench(sample_session, tmp_pa
 
     from core.errors import SessionFormatError
     from core.io import read_session
-    from core.simulation.replay import calibrate
-
+    from core.preparation import calibrate
     session = tmp_path / "s"
     shutil.copytree(sample_session, session)
     auto = calibrate(read_session(session))

@@ -157,7 +157,6 @@ class EvaluateParams(_LearningParams):
 def _replay_config(p: _ModelParams, youngs: float = 5000.0):
     from core.simulation import effect_from_dict
     from core.simulation.replay import ReplayConfig
-
     return ReplayConfig(
         youngs_modulus=youngs, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid),
         effects=tuple(effect_from_dict(dict(e)) for e in p.effects),
@@ -173,8 +172,7 @@ def _base_trial(p: _ModelParams):
 
 
 def _prepare(p: _ModelParams, ctx: JobContext, lo: float, hi: float, youngs: float = 5000.0):
-    from core.simulation.replay import prepare_session
-
+    from core.preparation import prepare_session
     return prepare_session(ctx.session_path, _replay_config(p, youngs), picked=ctx.picked, callback=ctx.scaled(lo, hi))
 
 
@@ -190,7 +188,6 @@ def run_generate(p: GenerateParams, ctx: JobContext) -> dict:
 def run_replay(p: ReplayParams, ctx: JobContext) -> dict:
     from app.viewer.data import write_viewer_arrays
     from core.simulation.replay import replay, write_replay
-
     prepared = _prepare(p, ctx, 0.0, 0.3, p.youngs_modulus)
     result = replay(prepared.path, _replay_config(p, p.youngs_modulus), prepared=prepared, callback=ctx.scaled(0.0, 0.9))
     write_replay(result, ctx.artifact_dir)
@@ -241,8 +238,8 @@ def run_fit(p: FitParams, ctx: JobContext) -> dict:
 
 def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
     from core.diagnosis import DiagnosisConfig, diagnose_prepared
-    from core.simulation.replay import ReplayConfig, prepare_session
-
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
     prepared = prepare_session(ctx.session_path, ReplayConfig(grid=tuple(p.grid)), picked=ctx.picked, callback=ctx.scaled(0.0, 0.1))
     config = DiagnosisConfig(grid=tuple(p.grid), fit_youngs=p.fit_youngs, refine_mesh=p.refine_mesh,
                              use_force=None if p.use_force == "auto" else p.use_force == "yes")
@@ -291,7 +288,6 @@ def _write_extended_run(prepared, grid, youngs: float, effects: list[dict], fold
     from app.viewer.data import vertex_errors, write_viewer_arrays
     from core.simulation import effect_from_dict
     from core.simulation.replay import ReplayConfig, replay, write_replay
-
     tests = tuple(n for n, s in prepared.sequences.items() if s.role == "test") or tuple(prepared.sequences)
     base = ReplayConfig(youngs_modulus=youngs, grid=grid, sequences=tests)
     result = replay(prepared.path, base, prepared=prepared)
@@ -311,8 +307,7 @@ def _prepare_learning(p: _LearningParams, ctx: JobContext, hi: float, youngs: fl
     """Read and prepare the session; the learned correction needs train, validation and test sequences."""
     from core.io import read_session
     from core.learning import LearningError
-    from core.simulation.replay import prepare_session
-
+    from core.preparation import prepare_session
     session = read_session(ctx.session_path)
     prepared = prepare_session(session, _replay_config(p, youngs), picked=ctx.picked, callback=ctx.scaled(0.0, hi))
     missing = {"train", "validation", "test"} - {s.role for s in prepared.sequences.values()}
@@ -361,7 +356,6 @@ def _write_corrected_run(prepared, config, report, folder) -> dict[str, str]:
 
     from app.viewer.data import vertex_errors, write_viewer_arrays
     from core.simulation.replay import replay, write_replay
-
     tests = list(report.in_loop)
     result = replay(prepared.path, replace(config, sequences=tuple(tests)), prepared=prepared)
     write_replay(result, folder)

@@ -13,7 +13,7 @@ from core.errors import SimulationError
 
 if TYPE_CHECKING:  # pragma: no cover
     from core.simulation.model import ModelBuilder
-    from core.simulation.probe import ProbePath
+    from core.preparation.probe import ProbePath
 
 __all__ = ["PhantomContext", "FitSpace", "Effect"]
 

@@ -1,4 +1,4 @@
-"""The probe's path in the phantom frame."""
+"""The probe's path in the phantom frame (the calibrated kinematics a replay follows)."""
 
 from __future__ import annotations
 

@@ -1,0 +1,108 @@
+"""Calibration of a session: robot -> phantom (Kabsch on corner touches) and camera ->
+phantom (ICP of the reference cloud), with their residuals (Wu et al. 2020, Sec. 3.1)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.io import Session, read_picked
+from core.registration import calibrate_camera, calibrate_robot, instrument_hints
+
+__all__ = ["Calibration", "calibrate"]
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Registration results with their residuals.
+
+    Attributes:
+        T_phantom_robot: (4, 4) robot base -> phantom (Kabsch on corner touches).
+        T_phantom_camera: (4, 4) camera -> phantom (point-to-plane ICP).
+        robot_rms: corner-touch residual RMS, m.
+        camera_rms: ICP inlier RMS, m.
+        camera_fitness: ICP inlier fraction.
+        probe_sigma: standard error of the calibrated probe's vertical position over the
+            top face, m, from the corner-touch residuals: per-axis touch noise
+            ``sigma^2 = sum(r^2) / (3 N - 6)`` (6 rigid degrees of freedom), propagated
+            through the Kabsch fit as ``sigma^2 / N`` at the touches' centroid plus the
+            tilt term, 1/3 of that averaged over the face. NaN when unknown.
+    """
+
+    T_phantom_robot: np.ndarray
+    T_phantom_camera: np.ndarray
+    robot_rms: float
+    camera_rms: float
+    camera_fitness: float
+    probe_sigma: float = float("nan")
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Calibration":
+        """The inverse of :meth:`to_json`."""
+        return cls(np.asarray(d["T_phantom_robot"], dtype=np.float64), np.asarray(d["T_phantom_camera"], dtype=np.float64),
+                   float(d["robot_rms"]), float(d["camera_rms"]), float(d["camera_fitness"]),
+                   float(d.get("probe_sigma", float("nan"))))
+
+    def to_json(self) -> dict:
+        return {
+            "T_phantom_robot": self.T_phantom_robot.tolist(),
+            "T_phantom_camera": self.T_phantom_camera.tolist(),
+            "robot_rms": float(self.robot_rms),
+            "camera_rms": float(self.camera_rms),
+            "camera_fitness": float(self.camera_fitness),
+            "probe_sigma": float(self.probe_sigma),
+        }
+
+
+def calibrate(session: Session, *, picked=None) -> Calibration:
+    """Register robot and camera to the phantom frame.
+
+    Args:
+        session: a read session.
+        picked: optional (points_camera (K, 3), points_phantom (K, 3)), K >= 3, to
+            initialise ICP from picked point pairs instead of automatically. When None,
+            pairs accepted in the workbench (``calibration/picked.json``) are used if
+            the session has them.
+
+    Raises:
+        RegistrationError: a registration that does not fit.
+        SessionFormatError: a malformed ``calibration/picked.json``.
+    """
+    meta = session.meta
+    if picked is None:
+        picked = read_picked(session.path)
+    robot = calibrate_robot(session.corners, meta.phantom.size, meta.probe.radius)
+    reference = session.reference_cloud()
+    hints = []
+    for seq in list(session.sequences.values())[:2]:
+        n = len(seq)
+        hints += instrument_hints(seq, robot.T, sorted({0, n // 4, n // 2}))
+    if reference is None:
+        first = next(iter(session.sequences.values()))
+        reference = first.cloud(0)
+    camera = calibrate_camera(
+        reference,
+        meta.phantom.size,
+        probe_radius=meta.probe.radius,
+        picked=picked,
+        hints=hints,
+        stl_path=session.phantom_stl,
+    )
+    return Calibration(
+        T_phantom_robot=robot.T,
+        T_phantom_camera=camera.T,
+        robot_rms=float(robot.rms),
+        camera_rms=float(camera.rms),
+        camera_fitness=float(camera.fitness),
+        probe_sigma=_probe_sigma(robot.residuals),
+    )
+
+
+def _probe_sigma(residuals: np.ndarray) -> float:
+    """Standard error (m) of the calibrated probe height (see ``Calibration.probe_sigma``)."""
+    n = int(np.asarray(residuals).size)
+    if n < 3:
+        return float("nan")
+    sigma2 = float(np.sum(np.asarray(residuals) ** 2)) / max(3 * n - 6, 1)
+    return float(np.sqrt(sigma2 / n * 4.0 / 3.0))
