@@ -13,7 +13,7 @@ def cmd_diagnose(args) -> int:
     from core.identification import executor
 
     config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement,
-                             use_force=False if args.no_force else None)
+                             use_force=False if args.no_force else None, segments=args.segments)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
         if args.network:
             diag = _diagnose_with_network(args, config, ex, cb)
@@ -135,6 +135,9 @@ def register(sub) -> None:
                    help="leave the force columns out of the evidence (by default they are used when every sequence has them)")
     p.add_argument("--network", metavar="CHECKPOINT",
                    help="a trained correction network (tissuetwin train): report how much of its correction each cause accounts for")
+    p.add_argument("--segments", type=int, default=None, metavar="N",
+                   help="fit on at most N pokes (cut at rest) of the train sequences and N of the validation ones, "
+                        "chosen to cover the palpation: long recordings cost no more than N pokes")
     _add_execution_options(p)
     p.set_defaults(func=cmd_diagnose)
 

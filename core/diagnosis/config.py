@@ -73,6 +73,12 @@ class DiagnosisConfig:
         detectability: state for every kind the smallest size this session's data would
             have claimed (``detectability`` in diagnosis.json).
         seed: of the bootstraps.
+        segments: fit and test the candidates on at most this many segments of the train
+            sequences, and as many of the validation sequences (informative frames,
+            :mod:`core.preparation.segments`: pokes cut at rest, replayed from rest and in
+            parallel, chosen to cover the palpation's kinds, never by their residuals), so
+            that the diagnosis's cost stops growing with the recording's length; the test
+            sequences stay whole. None: whole sequences.
         sensitivities: the fits' Jacobians are the replay's exact sensitivities
             (:mod:`core.simulation.sensitivity`: the candidate's variables, and log10 E, as
             extra right-hand sides of each step); False: a forward difference of one replay
@@ -108,6 +114,7 @@ class DiagnosisConfig:
     kinds: tuple[str, ...] = KINDS
     detectability: bool = True
     seed: int = 0
+    segments: int | None = None
     sensitivities: bool = True
     use_force: bool | None = None
 

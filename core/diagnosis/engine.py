@@ -61,6 +61,7 @@ from core.identification.fit import fit_youngs_modulus
 from core.identification.trials import Trial
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
 from core.preparation import PreparedSession
+from core.preparation.segments import segment_session, segments_of, select_segments
 from core.simulation.replay import noise_floor
 __all__ = ["DiagnosisConfig", "CauseReport", "Detectability", "Diagnosis", "diagnose_prepared", "detectability"]
 
@@ -177,6 +178,18 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
     return _Evidence(fit, va, T, chans, null, p, crit)
 
 
+def _informative_segments(prepared: PreparedSession, budget: int) -> PreparedSession:
+    """``prepared`` with its train and validation sequences replaced by at most ``budget``
+    segments each (:func:`core.preparation.segments.select_segments`); test sequences whole."""
+    chosen = []
+    for role in ("train", "validation"):
+        segs = [s for n, q in prepared.sequences.items() if q.role == role for s in segments_of(prepared, n)]
+        chosen += select_segments(segs, budget)
+    cut = segment_session(prepared, chosen)
+    test = {n: q for n, q in prepared.sequences.items() if q.role == "test"}
+    return replace(cut, sequences={**cut.sequences, **test})
+
+
 def _holm_adjusted(p: dict[str, float]) -> dict[str, float]:
     """Holm-adjusted p-values (the smallest family-wise rate at which each is rejected)."""
     order = sorted(p, key=lambda k: p[k])
@@ -214,6 +227,8 @@ def diagnose_prepared(
     cfg = config or DiagnosisConfig()
     executor = executor or SerialExecutor()
     t0 = time.perf_counter()
+    if cfg.segments:
+        prepared = _informative_segments(prepared, int(cfg.segments))
     say = callback or (lambda f, m: None)
     layout = FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
     ev = Evidence(prepared, cfg, executor, layout)

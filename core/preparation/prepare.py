@@ -25,6 +25,7 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 from typing import Callable
 
@@ -279,7 +280,14 @@ def prepare_session(
     try:
         cleaned = {}
         for n in names:
-            points, offsets, pth, force = _clean_sequence(session, n, cal, cfg, pool, progress)
+            try:
+                points, offsets, pth, force = _clean_sequence(session, n, cal, cfg, pool, progress)
+            except BrokenProcessPool:
+                # e.g. a script without an ``if __name__ == "__main__"`` guard: the spawned
+                # workers cannot start. Same results, cleaned in this process.
+                pool.shutdown(wait=False, cancel_futures=True)
+                pool = None
+                points, offsets, pth, force = _clean_sequence(session, n, cal, cfg, None, progress)
             cleaned[n] = (session.sequences[n].role, np.asarray(session.sequences[n].frames.t), points, offsets, pth, force)
     finally:
         if pool is not None:

@@ -31,7 +31,7 @@ class Clouds(SequenceABC):
     iterating gives the frames in order.
     """
 
-    def __init__(self, points: np.ndarray, offsets: np.ndarray, *, files: tuple[str, str] | None = None):
+    def __init__(self, points: np.ndarray, offsets: np.ndarray, *, files: tuple | None = None):
         points = np.asarray(points)
         offsets = np.asarray(offsets, dtype=np.int64)
         if points.ndim != 2 or points.shape[1] != 3:
@@ -53,9 +53,21 @@ class Clouds(SequenceABC):
         return cls(pts, offsets)
 
     @classmethod
-    def open(cls, points_file: str, offsets_file: str) -> "Clouds":
-        """Clouds memory-mapped from ``.npy`` files (read-only)."""
-        return cls(np.load(points_file, mmap_mode="r"), np.load(offsets_file), files=(points_file, offsets_file))
+    def open(cls, points_file: str, offsets_file: str, start: int = 0, stop: int | None = None) -> "Clouds":
+        """Clouds memory-mapped from ``.npy`` files (read-only), frames ``[start, stop)``."""
+        off = np.load(offsets_file)
+        stop = off.size - 1 if stop is None else int(stop)
+        pts = np.load(points_file, mmap_mode="r")[off[start]:off[stop]]
+        return cls(pts, off[start:stop + 1] - off[start], files=(points_file, offsets_file, int(start), stop))
+
+    def window(self, start: int, stop: int) -> "Clouds":
+        """Frames ``[start, stop)`` as clouds of their own (views; mapped from the same file)."""
+        off = self.offsets
+        files = None
+        if self.files is not None:
+            base = self.files[2]
+            files = (self.files[0], self.files[1], base + int(start), base + int(stop))
+        return Clouds(self.points[off[start]:off[stop]], off[start:stop + 1] - off[start], files=files)
 
     def __len__(self) -> int:
         return int(self.offsets.size - 1)
