@@ -58,6 +58,7 @@ from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, pal
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.fit import fit_youngs_modulus
+from core.identification.model_form import youngs_model_form
 from core.identification.trials import Trial
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
 from core.preparation import PreparedSession
@@ -393,7 +394,11 @@ def diagnose_prepared(
         e_fit = fit_candidate(ev, None, ext_effects, E=E_cur, fit_youngs=True, fine=bool(cfg.fine_grid),
                               iterations=2) if claimed else e_fit
         E_ext = e_fit.youngs_modulus
-        youngs = joint_youngs(e_fit)
+        say(0.74, "Young's modulus under other laws, Poisson's ratios and grids")
+        clock = sum(float(e["offset"]) for e in ext_effects if e["kind"] == "time_offset")
+        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor, clock_offset=clock)
+        ev.simulations += len(mf["variants"]) * len(ev.names["train"])
+        youngs = joint_youngs(e_fit, mf)
     else:
         say(0.75, "fitting Young's modulus with the claimed causes")
         fit_effects = [({"kind": "gravity", "g": list(9.81 * np.asarray(e["g"]) / max(np.linalg.norm(e["g"]), 1e-12))}

@@ -116,15 +116,32 @@ def summary(eng: Evidence, runs: list[FieldRun], sigma2: float, prepared: Prepar
     }
 
 
-def joint_youngs(fit: Fit) -> dict:
-    """The youngs_modulus entry of diagnosis.json from a joint fit (log10 E last):
-    value, 95 % interval from the Levenberg-Marquardt covariance, identifiable when the
-    interval spans less than half a decade."""
+def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
+    """The youngs_modulus entry of diagnosis.json from a joint fit (log10 E last): the
+    value, and a 95 % interval that holds the Levenberg-Marquardt covariance's and the
+    model-form range (``model_form`` of
+    :func:`core.identification.model_form.youngs_model_form`: E refitted under other
+    laws, Poisson's ratios and grids, each widened by the statistical interval);
+    identifiable when the interval spans less than a decade."""
     lg, se = float(fit.x[-1]), float(fit.se[-1])
-    ok = bool(np.isfinite(se) and 1.96 * se < 0.5)
-    return {"value": fit.youngs_modulus, "interval": [10.0 ** (lg - 1.96 * se), 10.0 ** (lg + 1.96 * se)] if np.isfinite(se) else None,
-            "identifiable": ok, "method": "fitted jointly with the claimed causes to the force and the residual field",
-            "reason": "force data set the scale of E" if ok else "the joint fit's interval spans half a decade or more"}
+    if not np.isfinite(se):
+        return {"value": fit.youngs_modulus, "interval": None, "identifiable": False,
+                "method": "fitted jointly with the claimed causes to the force and the residual field",
+                "reason": "the joint fit's Jacobian is singular"}
+    stat = [10.0 ** (lg - 1.96 * se), 10.0 ** (lg + 1.96 * se)]
+    lo, hi = stat
+    out = {"value": fit.youngs_modulus, "statistical_interval": stat,
+           "method": "fitted jointly with the claimed causes to the force and the residual field"}
+    if model_form and model_form.get("low") is not None:
+        f = 10.0 ** (1.96 * se)
+        lo, hi = min(lo, model_form["low"] / f), max(hi, model_form["high"] * f)
+        out["model_form"] = model_form
+    ok = bool(hi / lo < 10.0)
+    out.update({"interval": [lo, hi], "identifiable": ok,
+                "reason": ("force data set the scale of E; the interval holds the law, Poisson's ratio and grid "
+                           "variants of the model form" if model_form else "force data set the scale of E")
+                if ok else "the interval spans a decade or more"})
+    return out
 
 
 def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:

@@ -97,6 +97,10 @@ class FitResult:
     bootstrap_interval: tuple[float, float] | None = None
     probe_sigma: float = float("nan")
     calibration_shift: float = 0.0
+    model_form: dict | None = None
+    """E refitted to the force under other laws, Poisson's ratios and grids
+    (:func:`core.identification.model_form.youngs_model_form`, on the replay grid's scale),
+    whose range the interval holds; None without force data."""
 
     def to_json(self) -> dict:
         return {
@@ -111,6 +115,7 @@ class FitResult:
                 else {"grid": list(self.refined), "value": self.refined_value},
                 "interval_sources": {
                     "bootstrap_frames_sequences": list(self.bootstrap_interval) if self.bootstrap_interval else None,
+                    "model_form": self.model_form,
                     "probe_height_sigma_m": None if not math.isfinite(self.probe_sigma) else self.probe_sigma,
                     "relative_shift_per_probe_sigma": self.calibration_shift,
                 },
@@ -425,6 +430,18 @@ def fit_youngs_modulus(
         errors[role] = float(sum(r.frame_sums.sum() for r in ok) / sum(r.frame_counts.sum() for r in ok)) if ok else float("nan")
 
     scale = (refined_value / E_star) if refined_value else 1.0
+    model_form = None
+    if identifiable and use_force:
+        # the interval holds E under other laws, Poisson's ratios and grids (model form)
+        from core.identification.model_form import youngs_model_form
+
+        model_form = youngs_model_form(prepared, base.effects, E_star, names=names, executor=executor)
+        obj.evaluations += len(model_form["variants"]) * len(names)
+        if model_form["low"] is not None:
+            lo_i = min(lo_i, model_form["low"] / scale * (lo_i / E_star))
+            hi_i = max(hi_i, model_form["high"] / scale * (hi_i / E_star))
+            reason += (f"; widened to the model form: E refitted under {len(model_form['variants'])} laws, "
+                       f"Poisson's ratios and grids spans {model_form['low']:.3g}-{model_form['high']:.3g} Pa")
     return FitResult(
         youngs_modulus=(refined_value or E_star) if identifiable else None,
         interval=(lo_i * scale, hi_i * scale) if identifiable else None,
@@ -445,4 +462,5 @@ def fit_youngs_modulus(
         bootstrap_interval=(lo_b * scale, hi_b * scale) if identifiable else None,
         probe_sigma=probe_sigma,
         calibration_shift=float(10.0**shift - 1.0),
+        model_form=model_form,
     )
