@@ -261,8 +261,16 @@ def simulate_sensitivities(build: Builder, theta, path: ProbePath, probe_radius:
     F = times.size
     n_steps = step_t.size - 1
     if model.has_body_force:
-        state = static_equilibrium(model)[0]
-        dx, dq = _equilibrium_tangent(model, state, dm)
+        try:
+            state = static_equilibrium(model)[0]
+            dx, dq = _equilibrium_tangent(model, state, dm)
+        except SimulationError as exc:  # no rest state (e.g. gravity on a far too soft phantom), as simulate()
+            nan = np.full((F, N, 3), np.nan)
+            result = SimulationResult(times=times, positions=nan, contact_force=np.full((F, 3), np.nan),
+                                      probe_centres=tpath.at(times), probe_radius=float(radius), status="diverged",
+                                      message=f"no rest state under the body forces: {exc}", steps=0,
+                                      wall_time=time.perf_counter() - t_wall)
+            return Sensitivities(result, names, np.full((p, F, N, 3), np.nan), np.full((p, F, 3), np.nan))
     else:
         state = model.initial_state()
         dx, dq = np.zeros((p, N, 3)), np.zeros((p, 4, E))
