@@ -12,7 +12,9 @@ tetrahedra at nu ~ 0.44 lock, and a Richardson extrapolation over the 13x5x5, 19
 the element size), so a mesh-converged E is out of reach of these grids.
 
 :func:`youngs_model_form` therefore refits E to the measured force under each variant of
-:data:`VARIANTS` (two grids, three laws, the ends of the plausible Poisson's ratio range),
+:data:`VARIANTS` (three laws, the ends of the plausible Poisson's ratio range) on the
+coarse grid and, through the reference model's ratio of its fine to its coarse E, on the
+fine grid,
 by least squares along the force: the variant replayed at the model's E gives a force
 ``f``, and ``E f.m / f.f`` (noise-weighted, ``m`` the measured force) is its E, the
 causes that set a scale of their own (gravity, a foundation) understood as scaled with
@@ -50,11 +52,17 @@ class ModelFormVariant:
         return f"{law}, nu {self.poisson_ratio:g}, {'x'.join(str(v) for v in self.grid)}"
 
 
+COARSE, FINE = (13, 5, 5), (25, 9, 9)
+"""The grids of the variants: every variant on the coarse grid, and the reference on both,
+whose ratio carries every variant to the fine grid (one fine replay per sequence instead
+of one per variant; the ratio is that of the reference law and nu)."""
+
+REFERENCE = ModelFormVariant(COARSE, "corotational", 0.44)
+
 VARIANTS: tuple[ModelFormVariant, ...] = tuple(
-    [ModelFormVariant(g, law, nu) for g in ((13, 5, 5), (25, 9, 9)) for law in ("corotational", "stable_neo_hookean")
-     for nu in (0.42, 0.48)]
-    + [ModelFormVariant((13, 5, 5), "stable_yeoh", 0.44, k) for k in (1.0, 2.0)])
-"""The model-form variants of the modulus (see the module docstring)."""
+    [ModelFormVariant(COARSE, law, nu) for law in ("corotational", "stable_neo_hookean") for nu in (0.42, 0.48)]
+    + [ModelFormVariant(COARSE, "stable_yeoh", 0.44, k) for k in (1.0, 2.0)])
+"""The model-form variants of the modulus on the coarse grid (see the module docstring)."""
 
 def _force_trial(prepared: PreparedSession, name: str, effects, E: float, v: ModelFormVariant, dt: float):
     from core.simulation import Material, box_mesh, build_model, effect_from_dict, simulate
@@ -87,7 +95,8 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
 
     Returns:
         ``{"variants": [{"model": label, "youngs_modulus": Pa or None}], "low": Pa,
-        "high": Pa}`` (a variant whose replay diverged gets None and is left out).
+        "high": Pa, "fine_over_coarse": the reference's ratio}`` (a variant whose replay
+        diverged gets None and is left out).
     """
     executor = executor or SerialExecutor()
     names = list(names) if names is not None else [n for n, s in prepared.sequences.items() if s.role == "train"]
@@ -95,10 +104,12 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
             if prepared.sequences[m].force is not None]
     rest = np.concatenate(rest) if rest else np.zeros((0, 3))
     sigma = np.maximum(np.sqrt(np.mean(rest**2, axis=0)), 1e-3) if rest.shape[0] >= 10 else np.ones(3)
-    items = [(n, tuple(effects), float(youngs_modulus), v, dt) for v in variants for n in names]
+    fine_ref = ModelFormVariant(FINE, REFERENCE.law, REFERENCE.poisson_ratio)
+    runs = [REFERENCE, fine_ref, *variants]
+    items = [(n, tuple(effects), float(youngs_modulus), v, dt) for v in runs for n in names]
     forces = executor.map(_run, prepared, items)
-    out, k = [], 0
-    for v in variants:
+    fitted, k = [], 0
+    for v in runs:
         num = den = 0.0
         ok = True
         for n in names:
@@ -111,7 +122,16 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
             fm = seq.force_at(seq.frame_times + clock_offset)
             num += float(np.sum(f * fm / sigma**2))
             den += float(np.sum(f * f / sigma**2))
-        E_v = float(youngs_modulus) * num / den if ok and den > 0 and num > 0 else None
+        fitted.append(float(youngs_modulus) * num / den if ok and den > 0 and num > 0 else None)
+    ref, ref_fine = fitted[0], fitted[1]
+    ratio = ref_fine / ref if ref and ref_fine else None
+    out = [{"model": REFERENCE.label, "youngs_modulus": ref}, {"model": fine_ref.label, "youngs_modulus": ref_fine}]
+    for v, E_v in zip(variants, fitted[2:]):
         out.append({"model": v.label, "youngs_modulus": E_v})
+        if ratio is not None and v.grid == COARSE:
+            out.append({"model": ModelFormVariant(FINE, v.law, v.poisson_ratio, v.stiffening).label
+                        + " (the reference's fine/coarse ratio)",
+                        "youngs_modulus": None if E_v is None else E_v * ratio})
     vals = [o["youngs_modulus"] for o in out if o["youngs_modulus"] is not None]
-    return {"variants": out, "low": min(vals) if vals else None, "high": max(vals) if vals else None}
+    return {"variants": out, "low": min(vals) if vals else None, "high": max(vals) if vals else None,
+            "fine_over_coarse": ratio}

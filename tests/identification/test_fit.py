@@ -38,7 +38,11 @@ def test_force_columns_pin_down_youngs_modulus(force_session):
     (stable neo-Hookean): with the paper's corotational law the same data give ~5.9 kPa,
     a model-form bias of the linear law at 3-10 mm indentations, not an identification
     error. The replay grid alone (13x5x5) is stiffened by volumetric locking (~3.1 kPa);
-    the refit on the refined grid corrects it (measured 5.22 kPa, interval 4.96-5.49 kPa)."""
+    the refit on the refined grid corrects it (measured 5.20 kPa). The reported interval
+    holds the model form too (E refitted under other laws, Poisson's ratios and grids,
+    core.identification.model_form): measured 2.23-7.14 kPa, a 3.2x span, against a
+    statistical (bootstrap) interval of a few per cent. It must hold the truth and stay
+    informative (well under the 10x that reads "not identifiable")."""
     truth = json.loads((force_session / "truth.json").read_text())["youngs_modulus"]
     prepared = prepare_session(force_session)
     with executor(serial=True) as ex:
@@ -46,7 +50,11 @@ def test_force_columns_pin_down_youngs_modulus(force_session):
     assert fit.uses_force and fit.identifiable, fit.reason
     assert fit.youngs_modulus == pytest.approx(truth, rel=0.10)
     lo, hi = fit.interval
-    assert lo <= truth <= hi and lo <= fit.youngs_modulus <= hi and hi / lo < 1.5
+    assert lo <= truth <= hi and lo <= fit.youngs_modulus <= hi and hi / lo < 5.0
+    blo, bhi = fit.bootstrap_interval
+    assert lo <= blo <= fit.youngs_modulus <= bhi <= hi and bhi / blo < 1.5  # the data alone: tight
+    mf = fit.model_form
+    assert mf is not None and mf["low"] < fit.youngs_modulus < mf["high"] and mf["high"] / mf["low"] > 1.5
     assert 0 < fit.probe_sigma < 3e-4 and fit.calibration_shift > 0  # robot calibration widened it
     assert fit.coarse_value < 0.8 * truth  # locking on the coarse grid, corrected above
 
