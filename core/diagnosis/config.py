@@ -64,7 +64,8 @@ class DiagnosisConfig:
         lm_tolerance: ...which stop early once a step lowers the train chi2 by less than
             this (a fraction of one unit of chi2 cannot change a claim).
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
-            claimed causes on ``fine_grid`` (0: keep the coarse fits).
+            claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
+            step from the coarse fit.
         max_causes: most causes claimed.
         fit_youngs: report E fitted with the claimed causes (otherwise keep ``youngs_modulus``).
         refine_mesh, n_boot: passed to the E fit (no force data); n_boot is also the
@@ -106,7 +107,7 @@ class DiagnosisConfig:
     block: float = 1.0
     lm_iterations: int = 4
     lm_tolerance: float = 1.0
-    fine_refit_iterations: int = 2
+    fine_refit_iterations: int = 1
     max_causes: int = 3
     fit_youngs: bool = True
     refine_mesh: bool = True

@@ -144,9 +144,11 @@ def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x:
 
 
 def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
-            field_t: np.ndarray, field_v: np.ndarray) -> _Evidence:
-    """Fit ``cand`` on train beside the round's nuisances and judge it on validation."""
-    fit = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance)
+            field_t: np.ndarray, field_v: np.ndarray, start: np.ndarray | None = None) -> _Evidence:
+    """Fit ``cand`` on train beside the round's nuisances and judge it on validation
+    (from ``start`` when given, else from the kind's starts; its look-elsewhere factor is
+    the kind's declared ``searches`` either way)."""
+    fit = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance, start=start)
     spec = Spec(tuple(rnd.fixed) + tuple(fit.effects), rnd.youngs_modulus)
     tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
     r_t, r_v = ev.vector(tr), ev.vector(va)
@@ -288,6 +290,7 @@ def diagnose_prepared(
     active = list(cands)
     last: _Round | None = None
     last_evidence: dict[str, _Evidence] = {}
+    last_fits: dict[str, Fit] = {}
     for rnd_i in range(cfg.max_causes + 1):
         if joint and rnd_i > 0:
             # the round's reference model at its own optimum in E: otherwise any candidate
@@ -302,7 +305,12 @@ def diagnose_prepared(
         evid: dict[str, _Evidence] = {}
         for i, kind in enumerate(active):
             say(0.05 + 0.6 * (rnd_i + (i + 1) / (len(active) + 1)) / (cfg.max_causes + 1), f"round {rnd_i}: fitting {kind}")
-            evid[kind] = _assess(ev, cands[kind], rnd, cfg, len(active), field_t, field_v)
+            # a later round starts each kind from its fit of the round before (the model
+            # gained a cause; the kind's optimum moves, its basin rarely does)
+            prev = last_fits.get(kind)
+            evid[kind] = _assess(ev, cands[kind], rnd, cfg, len(active), field_t, field_v,
+                                 start=None if prev is None else prev.x[: len(cands[kind].names)])
+            last_fits[kind] = evid[kind].fit
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
         significant = holm(pvals, cfg.alpha)
@@ -392,11 +400,11 @@ def diagnose_prepared(
     E_ext = E_cur
     if joint:
         e_fit = fit_candidate(ev, None, ext_effects, E=E_cur, fit_youngs=True, fine=bool(cfg.fine_grid),
-                              iterations=2) if claimed else e_fit
+                              iterations=max(cfg.fine_refit_iterations, 1)) if claimed else e_fit
         E_ext = e_fit.youngs_modulus
         say(0.74, "Young's modulus under other laws, Poisson's ratios and grids")
-        clock = sum(float(e["offset"]) for e in ext_effects if e["kind"] == "time_offset")
-        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor, clock_offset=clock)
+        robot_clock = sum(float(e["offset"]) for e in ext_effects if e["kind"] == "time_offset")
+        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor, clock_offset=robot_clock)
         ev.simulations += len(mf["variants"]) * len(ev.names["train"])
         youngs = joint_youngs(e_fit, mf)
     else:

@@ -136,6 +136,10 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
         f = 10.0 ** (1.96 * se)
         lo, hi = min(lo, model_form["low"] / f), max(hi, model_form["high"] * f)
         out["model_form"] = model_form
+        # the reported value: the middle of the model-form range on a log scale (no variant
+        # preferred, the largest factor off any of them the smallest); the replay's E beside it
+        out["model_value"] = fit.youngs_modulus
+        out["value"] = float(np.sqrt(model_form["low"] * model_form["high"]))
     ok = bool(hi / lo < 10.0)
     out.update({"interval": [lo, hi], "identifiable": ok,
                 "reason": ("force data set the scale of E; the interval holds the law, Poisson's ratio and grid "
