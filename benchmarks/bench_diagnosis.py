@@ -13,7 +13,14 @@ force columns, ``use_force=False``). Every effect kind is a candidate of every d
 
     .venv/bin/python -m benchmarks.bench_diagnosis [--seeds 0 1 2] [--none-seeds 100 ... 109]
         [--kinds gravity none ...] [--force {yes,no,both}] [--duration 6] [--workers 2]
-        [--sessions DIR] [--json OUT] [--no-youngs] [--learned]
+        [--sessions DIR] [--json OUT] [--no-youngs] [--learned] [--method {exact,fd,both}]
+
+``--method both`` diagnoses every case twice, in the same run: with the exact
+sensitivities of the replay as the fits' Jacobians (``exact``, the default,
+``DiagnosisConfig.sensitivities=True``) and with one forward-difference replay per
+parameter (``fd``, the former method, kept for this comparison); the summary then
+compares their answers, wall times and simulations case by case. (Both use the compiled
+time loop; the Python step is compared with it in ``bench_replay``.)
 
 ``--sessions DIR`` keeps the generated sessions there and reuses them on the next run;
 ``--json OUT`` writes every finished case (hidden effect, lab E, sizes, wall time and the
@@ -134,7 +141,7 @@ def _fmt(v: float | None, unit: str = "") -> str:
 
 
 def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: int, force: bool,
-             args: argparse.Namespace, ex) -> dict:
+             args: argparse.Namespace, ex, method: str = "exact") -> dict:
     """Generate (or reuse) one case's session, diagnose it and print its line.
 
     Returns:
@@ -144,14 +151,15 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
         whole diagnosis.json (``"diagnosis"``); on a failure, ``"error"`` instead.
     """
     effects, size = hidden_effect(kind, seed, ctx)
-    rec: dict = {"kind": kind, "seed": int(seed), "force": bool(force), "hidden": effects, "hidden_size": size}
+    rec: dict = {"kind": kind, "seed": int(seed), "force": bool(force), "hidden": effects, "hidden_size": size,
+                 "method": method}
     try:
         path, gen_s = case_session(root, cfg, kind, seed, effects, force, args.duration)
         rec["session"], rec["generation_s"] = str(path), gen_s
         truth = read_truth(path) or {}
         rec["lab_youngs"] = E_lab = float(truth["youngs_modulus"]) if "youngs_modulus" in truth else None
         rec["lab_variation"] = truth.get("lab_variation")
-        dcfg = DiagnosisConfig(use_force=force, fit_youngs=not args.no_youngs)
+        dcfg = DiagnosisConfig(use_force=force, fit_youngs=not args.no_youngs, sensitivities=method == "exact")
         t0 = time.perf_counter()
         d = diagnose(path, dcfg, executor=ex)
         rec["wall_time_s"] = dt = time.perf_counter() - t0
@@ -176,7 +184,7 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
     rec["extended_gain"] = float(d.extended_gain)
     rec["force_gain"] = float(d.force["gain"]) if d.force else None
 
-    line = f"{kind:17s} seed {seed:3d} force {'yes' if force else 'no ':3s}: named {named or ['none']}"
+    line = f"{kind:17s} seed {seed:3d} force {'yes' if force else 'no ':3s} [{method}]: named {named or ['none']}"
     if rec["confounded"]:
         line += f", confounded {rec['confounded']}"
     if kind != "none":
@@ -328,6 +336,27 @@ def print_summary(records: list[dict], kinds: list[str], workers: int) -> None:
                   "(same test sequences)")
 
 
+def print_methods(records: list[dict]) -> None:
+    """Print the exact-sensitivity and finite-difference diagnoses of the same cases side by
+    side: named kinds, E, wall time and simulations."""
+    by = {}
+    for r in records:
+        if "error" not in r:
+            by.setdefault((r["kind"], r["seed"], r["force"]), {})[r["method"]] = r
+    pairs = [(k, v) for k, v in by.items() if {"exact", "fd"} <= set(v)]
+    if not pairs:
+        return
+    print("\n===== exact sensitivities vs forward differences (same cases, same run) =====")
+    for (kind, seed, force), v in pairs:
+        a, b = v["exact"], v["fd"]
+        same = a["named"] == b["named"] and a["confounded"] == b["confounded"]
+        print(f"{kind} seed {seed} force {'yes' if force else 'no'}: exact {a['named'] or ['none']} "
+              f"{a['wall_time_s']:.0f} s {a['simulations']} sims, E {_fmt(a['youngs'].get('value'), 'Pa')}; "
+              f"fd {b['named'] or ['none']} {b['wall_time_s']:.0f} s {b['simulations']} sims, "
+              f"E {_fmt(b['youngs'].get('value'), 'Pa')}; {'same answer' if same else 'DIFFERENT answers'}; "
+              f"speed-up {b['wall_time_s'] / a['wall_time_s']:.2f}x")
+
+
 def _jsonable(o):
     if hasattr(o, "tolist"):
         return o.tolist()
@@ -352,7 +381,11 @@ def main() -> None:
     ap.add_argument("--json", type=Path, help="write every finished case (with its diagnosis.json) into this file")
     ap.add_argument("--no-youngs", action="store_true", help="without force: skip the E fit (faster)")
     ap.add_argument("--learned", action="store_true", help="also train a small 2D network per session and compare gains")
+    ap.add_argument("--method", choices=("exact", "fd", "both"), default="exact",
+                    help="the fits' Jacobians: exact sensitivities (default), forward differences (the former "
+                         "method), or both on every case")
     args = ap.parse_args()
+    methods = ("exact", "fd") if args.method == "both" else (args.method,)
 
     cfg = lab_config(args.duration)
     ctx = phantom_context(cfg)
@@ -383,12 +416,17 @@ def main() -> None:
         root = args.sessions or Path(tmp)
         root.mkdir(parents=True, exist_ok=True)
         for kind, seed, force in cases:
-            rec = run_case(root, cfg, ctx, kind, seed, force, args, ex)
-            records.append(rec)
-            results[f"{kind}-{seed}-{'force' if force else 'noforce'}"] = rec
-            if args.json:
-                args.json.write_text(json.dumps(results, indent=1, default=_jsonable))
-    print_summary(records, list(args.kinds), args.workers)
+            for method in methods:
+                rec = run_case(root, cfg, ctx, kind, seed, force, args, ex, method)
+                records.append(rec)
+                results[f"{kind}-{seed}-{'force' if force else 'noforce'}-{method}"] = rec
+                if args.json:
+                    args.json.write_text(json.dumps(results, indent=1, default=_jsonable))
+    for method in methods:
+        if len(methods) > 1:
+            print(f"\n########## method: {method} ##########")
+        print_summary([r for r in records if r["method"] == method], list(args.kinds), args.workers)
+    print_methods(records)
 
 
 if __name__ == "__main__":
