@@ -17,6 +17,17 @@ def _mm(v) -> str:
     return "n/a" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v * 1e3:.3f}"
 
 
+def evidence_scores(candidates, kinds: list[str], rnd: int) -> list[float]:
+    """Each kind's score (held-out chi2 drop / critical value) in round ``rnd``, NaN where
+    the kind was not tested that round or its score is undefined (None: a null whose
+    critical value is zero or not finite), so that the evidence plot leaves a gap."""
+    out = []
+    for k in kinds:
+        v = next((c.score for c in candidates if c.kind == k and c.round == rnd), None)
+        out.append(float(v) if v is not None else float("nan"))
+    return out
+
+
 def _maps(diag: Diagnosis, out: Path) -> None:
     import matplotlib
 
@@ -76,7 +87,7 @@ def _maps(diag: Diagnosis, out: Path) -> None:
     kinds = list(dict.fromkeys(c.kind for c in diag.candidates))
     width = 0.8 / max(len(rounds), 1)
     for j, rnd in enumerate(rounds):
-        vals = [next((c.score for c in diag.candidates if c.kind == k and c.round == rnd), np.nan) for k in kinds]
+        vals = evidence_scores(diag.candidates, kinds, rnd)
         ax.bar(np.arange(len(kinds)) + j * width, vals, width, label=f"round {rnd}")
     ax.axhline(1.0, color="k", lw=1, ls="--", label="what a claim needs")
     ax.set_yscale("symlog", linthresh=0.1)
