@@ -107,11 +107,11 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     semi_analytic = kinds <= SCALE_FREE and nuisance is None
     heads = [start] if start is not None else ([np.zeros(0)] if cand is None else list(cand.starts))
     starts = [clip(np.concatenate([np.asarray(h, dtype=np.float64), tail])) for h in heads]
-    runs0 = runs(starts)
-    misfits = [rss(vec(r)) for r in runs0]
-    i = int(np.argmin(misfits))
-    x, raw_x = starts[i], raw(runs0[i])
-    r_x = raw_x if nuisance is None else nuisance.project(raw_x)
+    n_iter = eng.cfg.lm_iterations if iterations is None else iterations
+    # exact Jacobians, except for E alone among scale-free kinds: its semi-analytic column
+    # (below) needs no replay of its own
+    exact = eng.cfg.sensitivities and not (cand is None and fit_youngs and semi_analytic)
+
     def jacobian_at(x):
         """(raw vector, its exact Jacobian) at x: one replay differentiated along every variable."""
         d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs, simulation=sim)
@@ -119,7 +119,18 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
         return raw(rj), eng.jacobian(rj, shifted=not fine)
 
     J = J_raw = J_next = None
-    for _ in range(eng.cfg.lm_iterations if iterations is None else iterations):
+    if exact and len(starts) == 1 and starts[0].size > 0 and n_iter > 0:
+        # a single start: its replay with derivatives is the first iteration's Jacobian too
+        # (a plain replay of it first would be thrown away)
+        x = starts[0]
+        raw_x, J_next = jacobian_at(x)
+    else:
+        runs0 = runs(starts)
+        misfits = [rss(vec(r)) for r in runs0]
+        i = int(np.argmin(misfits))
+        x, raw_x = starts[i], raw(runs0[i])
+    r_x = raw_x if nuisance is None else nuisance.project(raw_x)
+    for it in range(n_iter):
         if not np.all(np.isfinite(r_x)) or x.size == 0:
             break
         pts = []
@@ -127,7 +138,7 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             xj = x.copy()
             xj[j] = x[j] + h if x[j] + h <= cand.upper[j] else x[j] - h
             pts.append(xj)
-        if eng.cfg.sensitivities:
+        if exact:
             # the exact Jacobian: the replay at x differentiated along every variable (the
             # accepted trial step of the last iteration already was)
             J_raw = J_next if J_next is not None else jacobian_at(x)[1]
@@ -170,7 +181,8 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             # grid a replay costs ~20 coarse ones, and fits of one to three variables are
             # close to linear
             for x_try in steps_lm:
-                if eng.cfg.sensitivities:  # the trial's Jacobian serves the next iteration if it is taken
+                # the trial's Jacobian serves the next iteration if it is taken (none follows the last)
+                if exact and it < n_iter - 1:
                     raw_try, J_try = jacobian_at(x_try)
                 else:
                     raw_try, J_try = raw(runs([x_try])[0]), None
