@@ -41,7 +41,8 @@ from core.simulation import stepper
 from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import MaxwellArm, Model, State
 from core.preparation.probe import ProbePath
-from core.simulation.solver import SimulationResult, divergence_message, model_tuple, static_equilibrium, step_grid
+from core.simulation.solver import SimulationResult, static_equilibrium
+from core.simulation.timeloop import divergence_message, model_tuple, step_grid
 from core.simulation.tangent import element_forces_tangent
 
 __all__ = ["Sensitivities", "ModelDerivatives", "model_derivatives", "simulate_sensitivities"]

@@ -149,7 +149,7 @@ def _gaps(cnodes, cW, cN, sel, x, centre, radius, out):
 
 @njit(cache=True)
 def _tangents(n):
-    """Two unit tangents of each normal (k, 3), as ``solver._tangents``."""
+    """Two unit tangents of each normal (k, 3), as ``solver._tangents`` (the Python reference step)."""
     k = n.shape[0]
     t1 = np.empty((k, 3))
     t2 = np.empty((k, 3))

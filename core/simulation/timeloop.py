@@ -1,0 +1,179 @@
+"""The compiled replay's plumbing: the time grid of a replay, the model as the compiled
+time loop (:mod:`core.simulation.stepper`) takes it, and the loop that drives it frame
+chunk by frame chunk. Shared by :func:`core.simulation.solver.simulate` and
+:func:`core.simulation.sensitivity.simulate_sensitivities` (split out of ``solver`` to
+keep it under 600 lines).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from core.errors import SimulationError
+from core.preparation.probe import ProbePath
+from core.simulation.lowrank import lapack_pbtrs
+from core.simulation.model import Model, State
+
+__all__ = ["StepGrid", "step_grid", "divergence_message", "compilable", "run_compiled", "model_tuple", "no_tangents",
+           "apply_hook"]
+
+
+@dataclass(frozen=True)
+class StepGrid:
+    """The time grid of a replay (see :func:`step_grid`).
+
+    Attributes:
+        times: (F,) output times, s. path: the probe path after the model's input-side
+            effects. probe_radius: m, after them. t0: start time, s. step_t: (K + 1,)
+            step times from t0, s. centres: (K + 1, 3) probe centres at the step times, m,
+            phantom frame. k_of: (F,) int64, the step whose end follows each output time
+            (output j lies in ``(step_t[k-1], step_t[k]]``).
+    """
+
+    times: np.ndarray
+    path: ProbePath
+    probe_radius: float
+    t0: float
+    step_t: np.ndarray
+    centres: np.ndarray
+    k_of: np.ndarray
+
+    def __iter__(self):
+        return iter((self.times, self.path, self.probe_radius, self.t0, self.step_t, self.centres, self.k_of))
+
+
+def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) -> StepGrid:
+    """The steps of a replay of ``path`` with ``model``: the start is the earlier of the
+    recorded path's first time and the first output time (before the input-side effects,
+    so that a clock offset moves the probe, not the grid), then steps of ``config.dt``
+    up to the last output time.
+
+    Raises:
+        SimulationError: empty, non-finite or decreasing output times, or a probe radius
+            that is not positive after the effects.
+    """
+    times = np.asarray(output_times, dtype=np.float64).reshape(-1)
+    if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+        raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
+    t0 = float(min(path.t[0], times[0]))
+    for effect in model.effects:
+        path, probe_radius = effect.transform_probe(path, probe_radius)
+    if not (probe_radius > 0):
+        raise SimulationError(f"probe radius must be positive, got {probe_radius}")
+    dt = model.config.dt
+    n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
+    step_t = t0 + dt * np.arange(n_steps + 1)
+    k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
+    return StepGrid(times, path, float(probe_radius), t0, step_t, path.at(step_t), k_of)
+
+
+def divergence_message(t: float, k: int, disp: float) -> str:
+    """The reason a replay diverged at time ``t`` (s), step ``k``, largest displacement ``disp`` (m)."""
+    return (f"diverged at t = {t:.3f} s (step {k}): "
+            + ("non-finite positions" if not np.isfinite(disp) else f"node moved {disp * 1e3:.0f} mm"))
+
+
+def compilable(model: Model) -> bool:
+    """Whether :mod:`core.simulation.stepper` runs this model (implicit Euler, Maxwell arms
+    as the only extra stress terms, ``config.compiled``)."""
+    from core.simulation.model import MaxwellArm
+
+    return (model.config.compiled and model.config.integrator == "implicit_euler" and model._factor is not None
+            and all(type(t) is MaxwellArm for t in model.terms))
+
+
+def run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, probe_radius, limit,
+                       frame_hook, callback):
+    """The time loop of :func:`core.simulation.solver.simulate` in
+    :func:`core.simulation.stepper.advance`, from ``state`` and output frame ``j``:
+    fills ``out_x`` (F, N, 3) and ``out_f`` (F, 3) in place; ``frame_hook`` and
+    ``callback`` as in ``simulate``.
+
+    Returns:
+        (final state, last step, status ``"ok"`` or ``"diverged"``, message).
+    """
+    from core.simulation import stepper
+
+    fac = model._factor
+    n_steps = step_t.size - 1
+    x = np.ascontiguousarray(state.x, dtype=np.float64).copy()
+    v = np.ascontiguousarray(state.v, dtype=np.float64).copy()
+    q = np.ascontiguousarray(state.q, dtype=np.float64).copy()
+    n_el = model.mesh.n_tets
+    eps_v = (np.ascontiguousarray(np.stack(state.term_state)) if model.terms else np.zeros((0, 9, n_el)))
+    prev_x, prev_f, force = x.copy(), np.zeros(3), np.zeros(3)
+    pbtrs = lapack_pbtrs()
+    mdl = model_tuple(model)
+    F = times.size
+    chunk = max(int(math.ceil(F / 50)), 1) if callback is not None else F
+    k, resume, status, message = 0, False, "ok", ""
+    tan = no_tangents(model, centres.shape[0], F)
+    while True:
+        j_stop = min(j + 1, F) if frame_hook is not None else min(j + chunk, F)
+        code, k, j, disp, rows = stepper.advance(
+            mdl, pbtrs, fac.cbT, fac._rows, fac._slot, fac._used, centres, float(probe_radius), x, v, q, eps_v,
+            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force, *tan)
+        fac._rows = rows
+        if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):
+            status, message = "diverged", divergence_message(step_t[k], k, disp)
+            break
+        if code == stepper.STATUS_STOPPED:
+            if frame_hook is not None:
+                apply_hook(frame_hook, model, j - 1, times, out_x, x)
+            if callback is not None:
+                callback(k / max(n_steps, 1), f"step {k}/{n_steps}")
+            resume = True
+            continue
+        break
+    if callback is not None and status == "ok" and n_steps:
+        callback(1.0, f"step {n_steps}/{n_steps}")
+    term_state = tuple(np.array(eps_v[i]) for i in range(eps_v.shape[0]))
+    return State(x=x, v=v, q=q, term_state=term_state, t=float(step_t[k])), k, status, message
+
+
+def model_tuple(model: Model) -> tuple:
+    """The model as :func:`core.simulation.stepper.advance` takes it (see there)."""
+    cfg, el = model.config, model.elements
+    dt = cfg.dt
+    law = {"corotational": 0, "stable_neo_hookean": 1, "stable_yeoh": 2}[model.material.law]
+    iters = cfg.polar_iterations if model.needs_rotation else 0
+    tau = np.array([t.tau for t in model.terms], dtype=np.float64)
+    kr = np.array([t.k for t in model.terms], dtype=np.float64)
+    k_lhs = dt * cfg.rayleigh_stiffness + dt * dt * (1.0 + sum(t.lhs_scale(dt) for t in model.terms))
+    return (model.mesh.tets, el.grad_n, el.volume, model.mu, model.lam, law, float(model.material.stiffening), iters,
+            tau, kr, dt, float(cfg.rayleigh_mass), float(cfg.rayleigh_stiffness), int(cfg.newton_iterations),
+            model.mass_dofs, model.free_dofs, model.free_index, model.scratch_slot,
+            np.ascontiguousarray(model.body_force, dtype=np.float64),
+            np.ascontiguousarray(model.support_stiffness, dtype=np.float64), model.mesh.nodes,
+            model.mesh.surface_triangles, float(model.contact_stiffness), float(cfg.contact_margin),
+            int(cfg.contact_iterations), float(cfg.contact_tolerance), float(model.friction),
+            float(cfg.friction_slip_speed), float(k_lhs))
+
+
+def no_tangents(model: Model, n_centres: int, n_frames: int) -> tuple:
+    """The tangent arguments of :func:`core.simulation.stepper.advance` for p = 0 directions."""
+    N, E, T = model.mesh.n_nodes, model.mesh.n_tets, len(model.terms)
+    z = np.zeros(0)
+    dmdl = (np.zeros((0, E)), np.zeros((0, E)), z, np.zeros((0, N, 3)), np.zeros((0, N)), z, np.zeros((0, T)),
+            np.zeros((0, T)), z, z)
+    return (dmdl, np.zeros((0, n_centres, 3)), np.zeros((0, N, 3)), np.zeros((0, N, 3)), np.zeros((0, 4, E)),
+            np.zeros((0, T, 9, E)), np.zeros((0, n_frames, N, 3)), np.zeros((0, n_frames, 3)), np.zeros((0, N, 3)),
+            np.zeros((0, 3)), np.zeros((0, 3)))
+
+
+def apply_hook(frame_hook, model, j, times, out_x, x) -> None:
+    """The in-loop correction of frame ``j`` (see :func:`core.simulation.solver.simulate`): ``out_x[j]`` and the
+    state's free nodes ``x`` (in place) shifted by the hook's change."""
+    cur = out_x[j]
+    new = frame_hook(j, float(times[j]), cur.copy())
+    if new is None:
+        return
+    new = np.asarray(new, dtype=np.float64)
+    if new.shape != cur.shape:
+        raise SimulationError(f"frame_hook must return ({cur.shape[0]}, 3) positions, got {new.shape}")
+    delta = np.where(model.free[:, None], new - cur, 0.0)
+    out_x[j] = cur + delta
+    x += delta
