@@ -50,7 +50,7 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Directions, Evidence, Spec
 from core.diagnosis.fields import FACES, FieldLayout
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import HeldOutTest, holm
+from core.diagnosis.inference import HeldOutTest, holm, holm_adjusted
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
@@ -62,7 +62,7 @@ from core.identification.model_form import youngs_model_form
 from core.identification.trials import Trial
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
 from core.preparation import PreparedSession
-from core.preparation.segments import segment_session, segments_of, select_segments
+from core.preparation.segments import informative_session
 from core.simulation.replay import noise_floor
 __all__ = ["DiagnosisConfig", "CauseReport", "Detectability", "Diagnosis", "diagnose_prepared", "detectability"]
 
@@ -181,29 +181,6 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
     return _Evidence(fit, va, T, chans, null, p, crit)
 
 
-def _informative_segments(prepared: PreparedSession, budget: int) -> PreparedSession:
-    """``prepared`` with its train and validation sequences replaced by at most ``budget``
-    segments each (:func:`core.preparation.segments.select_segments`); test sequences whole."""
-    chosen = []
-    for role in ("train", "validation"):
-        segs = [s for n, q in prepared.sequences.items() if q.role == role for s in segments_of(prepared, n)]
-        chosen += select_segments(segs, budget)
-    cut = segment_session(prepared, chosen)
-    test = {n: q for n, q in prepared.sequences.items() if q.role == "test"}
-    return replace(cut, sequences={**cut.sequences, **test})
-
-
-def _holm_adjusted(p: dict[str, float]) -> dict[str, float]:
-    """Holm-adjusted p-values (the smallest family-wise rate at which each is rejected)."""
-    order = sorted(p, key=lambda k: p[k])
-    m = len(order)
-    out, run = {}, 0.0
-    for i, k in enumerate(order):
-        run = max(run, min(1.0, (m - i) * p[k]))
-        out[k] = run
-    return out
-
-
 def diagnose_prepared(
     prepared: PreparedSession,
     config: DiagnosisConfig | None = None,
@@ -231,7 +208,7 @@ def diagnose_prepared(
     executor = executor or SerialExecutor()
     t0 = time.perf_counter()
     if cfg.segments:
-        prepared = _informative_segments(prepared, int(cfg.segments))
+        prepared = informative_session(prepared, int(cfg.segments))
     say = callback or (lambda f, m: None)
     layout = FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
     ev = Evidence(prepared, cfg, executor, layout)
@@ -314,7 +291,7 @@ def diagnose_prepared(
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
         significant = holm(pvals, cfg.alpha)
-        adjusted = _holm_adjusted(pvals)
+        adjusted = holm_adjusted(pvals)
         round_reports = {}
         for k in active:
             e = evid[k]

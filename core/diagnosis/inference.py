@@ -48,7 +48,7 @@ import numpy as np
 
 from core.diagnosis.nuisance import Nuisance
 
-__all__ = ["HeldOutTest", "holm", "webb_weights"]
+__all__ = ["HeldOutTest", "holm", "holm_adjusted", "webb_weights"]
 
 _WEBB = np.array([-math.sqrt(1.5), -1.0, -math.sqrt(0.5), math.sqrt(0.5), 1.0, math.sqrt(1.5)])
 
@@ -75,6 +75,18 @@ def holm(p: dict[str, float], alpha: float) -> set[str]:
         if p[k] > alpha / (m - i):
             break
         out.add(k)
+    return out
+
+
+
+def holm_adjusted(p: dict[str, float]) -> dict[str, float]:
+    """Holm-adjusted p-values (the smallest family-wise rate at which each is rejected)."""
+    order = sorted(p, key=lambda k: p[k])
+    m = len(order)
+    out, run = {}, 0.0
+    for i, k in enumerate(order):
+        run = max(run, min(1.0, (m - i) * p[k]))
+        out[k] = run
     return out
 
 

@@ -26,7 +26,7 @@ import numpy as np
 from core.preparation.prepared import Clouds, PreparedSequence, PreparedSession
 from core.preparation.probe import ProbePath
 
-__all__ = ["Segment", "segments_of", "segment_session", "select_segments"]
+__all__ = ["Segment", "segments_of", "segment_session", "select_segments", "informative_session"]
 
 
 @dataclass(frozen=True)
@@ -164,3 +164,17 @@ def select_segments(segments: list[Segment], budget: int) -> list[Segment]:
             chosen.append(s)
             used_seq[s.sequence] = used_seq.get(s.sequence, 0) + 1
     return sorted(chosen, key=lambda s: (s.sequence, s.start))
+
+
+def informative_session(prepared: PreparedSession, budget: int) -> PreparedSession:
+    """``prepared`` with its train and validation sequences replaced by at most ``budget``
+    segments each (:func:`select_segments`, cut by :func:`segments_of`); test sequences
+    whole, so that held-out gains are measured on whole recordings (the diagnosis's
+    ``segments`` option)."""
+    chosen = []
+    for role in ("train", "validation"):
+        segs = [s for n, q in prepared.sequences.items() if q.role == role for s in segments_of(prepared, n)]
+        chosen += select_segments(segs, budget)
+    cut = segment_session(prepared, chosen)
+    test = {n: q for n, q in prepared.sequences.items() if q.role == "test"}
+    return replace(cut, sequences={**cut.sequences, **test})
