@@ -41,7 +41,7 @@ from core.simulation import stepper
 from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import MaxwellArm, Model, State
 from core.preparation.probe import ProbePath
-from core.simulation.solver import SimulationResult, static_equilibrium
+from core.simulation.solver import SimulationResult, no_rest_state, static_equilibrium
 from core.simulation.timeloop import divergence_message, model_tuple, step_grid
 from core.simulation.tangent import element_forces_tangent
 
@@ -266,11 +266,7 @@ def simulate_sensitivities(build: Builder, theta, path: ProbePath, probe_radius:
             state = static_equilibrium(model)[0]
             dx, dq = _equilibrium_tangent(model, state, dm)
         except SimulationError as exc:  # no rest state (e.g. gravity on a far too soft phantom), as simulate()
-            nan = np.full((F, N, 3), np.nan)
-            result = SimulationResult(times=times, positions=nan, contact_force=np.full((F, 3), np.nan),
-                                      probe_centres=tpath.at(times), probe_radius=float(radius), status="diverged",
-                                      message=f"no rest state under the body forces: {exc}", steps=0,
-                                      wall_time=time.perf_counter() - t_wall)
+            result = no_rest_state(grid, N, exc, time.perf_counter() - t_wall)
             return Sensitivities(result, names, np.full((p, F, N, 3), np.nan), np.full((p, F, 3), np.nan))
     else:
         state = model.initial_state()

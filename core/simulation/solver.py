@@ -25,8 +25,8 @@ from core.errors import SimulationError
 from core.simulation import kernels
 from core.simulation.contact import Contacts, find_contacts
 from core.simulation.model import Model, State
-from core.simulation.timeloop import (StepGrid, compilable, divergence_message, model_tuple, no_tangents, run_compiled,
-                                      step_grid)
+from core.simulation.timeloop import (StepGrid, apply_hook, compilable, divergence_message, model_tuple, no_tangents,
+                                      run_compiled, step_grid)
 from core.preparation.probe import ProbePath
 
 __all__ = ["SimulationResult", "StepInfo", "StepGrid", "step", "simulate", "step_grid", "static_equilibrium",
@@ -299,6 +299,17 @@ def _step_explicit(model: Model, state: State, centre, radius, vp):
     return State(x_new, v_new.reshape(-1, 3), q, terms, state.t + dt), StepInfo(force, len(contacts))
 
 
+def no_rest_state(grid: StepGrid, n_nodes: int, exc: Exception, wall_time: float) -> SimulationResult:
+    """The diverged result of a replay whose model has no rest state under its body
+    forces (:func:`static_equilibrium` raised ``exc``): NaN positions (F, n_nodes, 3) and
+    forces (F, 3) at ``grid.times``, no steps."""
+    F = grid.times.size
+    return SimulationResult(times=grid.times, positions=np.full((F, n_nodes, 3), np.nan),
+                            contact_force=np.full((F, 3), np.nan), probe_centres=grid.path.at(grid.times),
+                            probe_radius=float(grid.probe_radius), status="diverged",
+                            message=f"no rest state under the body forces: {exc}", steps=0, wall_time=wall_time)
+
+
 def static_equilibrium(
     model: Model,
     *,
@@ -408,13 +419,7 @@ def simulate(
             try:
                 state = static_equilibrium(model)[0]
             except SimulationError as exc:  # e.g. gravity on a far too soft phantom: it collapses
-                nan = np.full((times.size, n_nodes, 3), np.nan)
-                return SimulationResult(
-                    times=times, positions=nan, contact_force=np.full((times.size, 3), np.nan),
-                    probe_centres=path.at(times), probe_radius=float(probe_radius), status="diverged",
-                    message=f"no rest state under the body forces: {exc}", steps=0,
-                    wall_time=time.perf_counter() - t_wall,
-                )
+                return no_rest_state(grid, n_nodes, exc, time.perf_counter() - t_wall)
         else:
             state = model.initial_state()
     state = state.copy()
@@ -423,22 +428,14 @@ def simulate(
     out_f = np.full((times.size, 3), np.nan)
     limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
     j = 0
-    free = model.free[:, None]
 
     def record(j: int, x: np.ndarray, st: State) -> None:
         """Store frame j; with a hook, shift the state's free nodes by its correction."""
         out_x[j] = x
-        if frame_hook is None:
-            return
-        new = frame_hook(j, float(times[j]), x.copy())
-        if new is None:
-            return
-        new = np.asarray(new, dtype=np.float64)
-        if new.shape != x.shape:
-            raise SimulationError(f"frame_hook must return ({n_nodes}, 3) positions, got {new.shape}")
-        delta = np.where(free, new - x, 0.0)
-        out_x[j] = x + delta
-        st.x = st.x + delta
+        if frame_hook is not None:
+            shifted = st.x.copy()
+            apply_hook(frame_hook, model, j, times, out_x, shifted)
+            st.x = shifted
 
     while j < times.size and k_of[j] == 0:
         record(j, state.x, state)
