@@ -338,9 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _command_groups() -> list:
     """Subcommands that live in their own modules; each module exposes ``register(subparsers)``."""
-    from app import cli_bag, cli_diagnosis, cli_learning, cli_serve
+    from app import cli_bag, cli_diagnosis, cli_export, cli_learning, cli_serve
 
-    return [cli_diagnosis.register, cli_serve.register, cli_learning.register, cli_bag.register]
+    return [cli_diagnosis.register, cli_serve.register, cli_learning.register, cli_bag.register, cli_export.register]
 
 
 def main(argv: list[str] | None = None) -> int:
