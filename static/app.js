@@ -136,6 +136,15 @@ $("#job-form").onsubmit = async (ev) => {
 };
 
 // ---------------------------------------------------------------- jobs
+// Downloads of a finished replay's or diagnosis's calibrated twin (GET /api/jobs/{id}/export, a zip each).
+const EXPORT_TYPES = new Set(["replay", "diagnose"]);
+const EXPORT_FORMATS = [["vtu", "VTU", "VTK meshes for ParaView"], ["sofa", "SOFA", "a SOFA Python3 scene"], ["mjcf", "MJCF", "a MuJoCo model"]];
+function exportLinks(j) {
+  if (j.status !== "done" || !EXPORT_TYPES.has(j.type)) return "";
+  return `<span class="export-links">` + EXPORT_FORMATS.map(([f, label, what]) =>
+    `<a class="export-link" data-format="${f}" href="/api/jobs/${j.id}/export?format=${f}" download="job-${j.id}-${f}.zip" title="download the calibrated twin as ${what} (zip)">${label}</a>`).join(" ") + `</span>`;
+}
+
 async function loadJobs() {
   const jobs = await api("GET", "/api/jobs?limit=50");
   const body = $("#jobs-table tbody");
@@ -144,6 +153,7 @@ async function loadJobs() {
     const actions = [
       active ? `<button class="cancel-btn" data-id="${j.id}">cancel</button>` : "",
       j.status === "done" && (j.result || {}).viewer ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
+      exportLinks(j),
     ].join(" ");
     return `<tr data-job-id="${j.id}" data-status="${j.status}">
       <td><a href="#" class="job-link" data-id="${j.id}">${j.id}</a></td><td>${j.type}</td><td>${j.session_id ?? ""}</td>
@@ -217,6 +227,7 @@ async function showResult(id) {
   for (const png of arts.filter((a) => a.path.endsWith(".png") && !shown.has(a.path))) {
     out.push(`<img class="plot" src="/api/jobs/${id}/artifacts/${png.path}" alt="${esc(png.path)}">`);
   }
+  if (exportLinks(j)) out.push(`<p id="export-links">export the calibrated twin (zip): ${exportLinks(j)}</p>`);
   if (j.error) out.push(`<p class="error">${esc(j.error)}</p>`);
   if (j.traceback) out.push(`<details><summary>traceback</summary><pre>${esc(j.traceback)}</pre></details>`);
   out.push(`<details><summary>log</summary><pre id="job-log">${esc(j.log)}</pre></details>`);

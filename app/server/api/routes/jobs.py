@@ -1,12 +1,15 @@
-"""/api/jobs: submit, list, watch, cancel, download artifacts."""
+"""/api/jobs: submit, list, watch, cancel, download artifacts and the exported twin."""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query
 from fastapi.responses import FileResponse
 
 from app.server.api.deps import DB, RegistryDep, RunnerDep, SettingsDep
 from app.server.api.schemas import Artifact, JobCreate, JobDetail, JobOut, errors
+from app.server.services import export as export_svc
 from app.server.services import jobs as svc
 
 router = APIRouter(prefix="/api/jobs", tags=["jobs"])
@@ -49,3 +52,21 @@ def download_artifact(job_id: int, path: str, db: DB):
     paths and symlinks leading out are 404)."""
     target = svc.artifact_path(svc.get_job(db, job_id), path)
     return FileResponse(target, filename=target.name)
+
+
+_ZIP = {200: {"description": "a zip of the exported files, under one folder job-<id>-<format>/",
+              "content": {"application/zip": {}}}}
+ExportFormat = Annotated[Literal["vtu", "sofa", "mjcf"], Query(
+    alias="format", description="vtu (ParaView), sofa (a SOFA Python3 scene) or mjcf (MuJoCo)")]
+
+
+@router.get("/{job_id}/export", responses={**_ZIP, **errors(404, 409)}, response_class=FileResponse)
+def export_job(job_id: int, fmt: ExportFormat, db: DB):
+    """The calibrated twin of a finished replay or diagnose job as VTU, a SOFA scene or
+    MuJoCo MJCF (``tissuetwin export``), zipped as ``job-<id>-<format>.zip``. Made on the
+    first request into the job's folder (``export/<format>/``) and reused after.
+    404: no such job; 409: not a finished replay or diagnose job (or its folder is gone,
+    or the export failed); 422: an unknown format, or a run the export cannot read (the
+    message says why). Nothing else of the job is changed."""
+    target = export_svc.export_job(db, job_id, fmt)
+    return FileResponse(target, filename=target.name, media_type="application/zip")

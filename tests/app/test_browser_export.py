@@ -1,0 +1,77 @@
+"""The dashboard's export links (issue 19, item 5) in a real headless browser (Debian
+chromium + playwright): a finished replay job shows "VTU", "SOFA" and "MJCF" links to
+``/api/jobs/{id}/export`` in the job list and in its result panel, and one downloads.
+
+The replay's folder is written by core's replay run here (``write_replay``, as the
+replay job does) and its database row is the one the runner stores for a finished job,
+so the module needs no Dask job; the server then serves the real export.
+"""
+
+from __future__ import annotations
+
+import zipfile
+
+import pytest
+
+from tests.app._server import Server
+from tests.app.conftest import needs_chromium
+
+pytestmark = [pytest.mark.slow, needs_chromium]
+
+
+@pytest.fixture(scope="module")
+def replayed(small_session, tmp_path_factory):
+    """A data directory whose database holds the `small` session and its finished replay job 1 (seq01)."""
+    from app.server import db as dbm
+    from app.server.jobs.types import ReplayParams
+    from core.simulation.replay import ReplayConfig, replay, write_replay
+
+    data = tmp_path_factory.mktemp("replayed") / "data"
+    folder = (data / "jobs" / "1").resolve()
+    result = replay(small_session, ReplayConfig(sequences=("seq01",)))
+    write_replay(result, folder)
+    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
+    try:
+        factory = dbm.make_sessionmaker(engine)
+        with factory.begin() as db:
+            rec = dbm.SessionRecord(name="small", path=str(small_session.resolve()), source="registered")
+            db.add(rec)
+            db.flush()
+            now = dbm.utcnow()
+            params = ReplayParams(session_id=rec.id, sequences=["seq01"]).model_dump(mode="json")
+            db.add(dbm.JobRecord(id=1, type="replay", params=params, session_id=rec.id, status=dbm.DONE, progress=1.0,
+                                 message="done", result=result.to_json(), artifact_dir=str(folder), created_at=now,
+                                 started_at=now, finished_at=now, log="made by the test from core's replay\n"))
+    finally:
+        engine.dispose()
+    return data
+
+
+def test_export_links_of_a_finished_replay_in_chromium(replayed, chromium, tmp_path):
+    server = Server(replayed)
+    try:
+        page = chromium.new_page(viewport={"width": 1400, "height": 1100}, accept_downloads=True)
+        try:
+            page.goto(server.url + "/")
+            page.wait_for_selector("body[data-ready='1']")
+            row = "#jobs-table tr[data-job-id='1'][data-status='done']"
+            page.wait_for_selector(f"{row} a.export-link")
+            for where in (row, "#export-links"):  # the job list, and the result panel (it follows the latest job)
+                page.wait_for_selector(f"{where} a.export-link")
+                links = page.locator(f"{where} a.export-link")
+                assert links.all_inner_texts() == ["VTU", "SOFA", "MJCF"]
+                for i, fmt in enumerate(("vtu", "sofa", "mjcf")):
+                    assert links.nth(i).get_attribute("href") == f"/api/jobs/1/export?format={fmt}"
+                    assert links.nth(i).get_attribute("download") == f"job-1-{fmt}.zip"
+            with page.expect_download(timeout=60_000) as info:
+                page.click(f"{row} a.export-link[data-format='sofa']")
+            download = info.value
+            assert download.suggested_filename == "job-1-sofa.zip"
+            saved = tmp_path / download.suggested_filename
+            download.save_as(saved)
+            with zipfile.ZipFile(saved) as zf:
+                assert sorted(zf.namelist()) == ["job-1-sofa/probe_path.csv", "job-1-sofa/scene.py", "job-1-sofa/twin.json"]
+        finally:
+            page.close()
+    finally:
+        server.stop()
