@@ -234,7 +234,13 @@ def cmd_sweep(args) -> int:
     for E, e in result.table().items():
         table.add_row(f"{E:g}", f"{e * 1e3:.4f}" if e == e else "N/A (diverged)")
     Console().print(table)
-    print(f"best E: {result.best():g} Pa; wrote {out}/sweep.csv and {out}/sweep.png")
+    v = result.verdict or {}
+    if v.get("identifiable"):
+        lo, hi = v["interval"]
+        print(f"E = {v['value']:.4g} Pa (95 % interval {lo:.4g}-{hi:.4g} Pa; {v['reason']})")
+    else:
+        print(f"E not identifiable from these data: {v.get('reason')}")
+    print(f"wrote {out}/sweep.csv, {out}/sweep.json and {out}/sweep.png")
     return 0
 
 

@@ -151,8 +151,9 @@ def _outcome(job: dict) -> str:
     if job["status"] != "done":
         return f"{job['status']}: {job['error']}"
     if job["type"] == "sweep":
-        return f"best E {r.get('best'):g} Pa of {len(r.get('table', []))} values" if r.get("best") else "no finite error"
-    if job["type"] == "fit":
+        if "youngs_modulus" not in r:  # a sweep from before the verdict
+            return f"lowest error at E {r.get('best'):g} Pa of {len(r.get('table', []))} values" if r.get("best") else "no finite error"
+    if job["type"] in ("sweep", "fit"):  # one verdict on E (core.identification.verdict)
         y = r.get("youngs_modulus") or {}
         if y.get("identifiable"):
             lo, hi = y["interval"]

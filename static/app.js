@@ -192,13 +192,16 @@ async function showResult(id) {
   const out = [];
   const r = j.result || {};
   if (j.type === "sweep" && j.status === "done") {
+    // the verdict decides whether the lowest row is an estimate: no bold "best" for a flat sweep
+    const v = r.youngs_modulus;
+    const marked = v && v.identifiable ? r.best : null;
     out.push(`<img class="plot" id="sweep-plot" src="/api/jobs/${id}/artifacts/sweep.png?t=${Date.now()}" alt="error against E">`);
+    out.push(v ? youngsVerdict(v) : `<p class="youngs-verdict" data-identifiable="unknown">no verdict on E (a sweep from an older release); lowest mean error at E ${esc(r.best)} Pa</p>`);
     out.push(`<table id="sweep-table"><thead><tr><th>E (Pa)</th><th>mean error (mm)</th></tr></thead><tbody>` +
-      r.table.map((row) => `<tr class="${row.youngs_modulus === r.best ? "best" : ""}"><td class="num">${row.youngs_modulus.toPrecision(3)}</td><td class="num">${row.mean_error === null ? "N/A (diverged)" : mm(row.mean_error)}</td></tr>`).join("") +
-      `</tbody></table><p class="muted">cf. Wu et al. 2020, Tables 1-2; best E ${r.best}</p>`);
+      r.table.map((row) => `<tr class="${marked !== null && row.youngs_modulus === marked ? "best" : ""}"><td class="num">${row.youngs_modulus.toPrecision(3)}</td><td class="num">${row.mean_error === null ? "N/A (diverged)" : mm(row.mean_error)}</td></tr>`).join("") +
+      `</tbody></table><p class="muted">cf. Wu et al. 2020, Tables 1-2</p>`);
   } else if (j.type === "fit" && j.status === "done") {
-    const y = r.youngs_modulus || {};
-    out.push(`<p><b>Young's modulus</b>: ${y.identifiable ? `${Number(y.value).toPrecision(4)} Pa (95 % interval ${y.interval.map((v) => Number(v).toPrecision(3)).join(" - ")} Pa)` : "not identifiable: " + esc(y.reason)}</p>`);
+    out.push(youngsVerdict(r.youngs_modulus));
     out.push(`<p>errors (mm): ${Object.entries(r.errors || {}).map(([k, v]) => `${k} ${mm(v)}`).join(", ")}</p>`);
   } else if (j.type === "replay" && j.status === "done") {
     out.push(`<table id="replay-table"><thead><tr><th>sequence</th><th>role</th><th>frames</th><th>status</th><th>mean error (mm)</th></tr></thead><tbody>` +
@@ -240,6 +243,37 @@ async function showResult(id) {
 
 // ---------------------------------------------------------------- plots: training losses, Table 3, diagnosis
 function pct(v) { return v === null || v === undefined ? "N/A" : (v * 100).toFixed(1) + " %"; }
+
+// ---------------------------------------------------------------- Young's modulus: one verdict everywhere
+// The sweep, fit and diagnosis panels all state E through this function, from the same
+// {identifiable, value, interval, reason} verdict (core.identification.verdict): an
+// identifiable E with its 95 % interval in bold, otherwise "not identifiable" with the reason
+// and never a value in bold.
+function paUnit(v) {
+  const a = Math.abs(v);
+  return a >= 1e6 ? [1e6, "MPa"] : a >= 1e3 ? [1e3, "kPa"] : [1, "Pa"];
+}
+function youngsVerdict(v) {
+  if (typeof v === "number") v = { value: v, identifiable: null };  // old diagnoses: a bare value
+  v = v || {};
+  const tip = v.statistic ? ` title="${esc(JSON.stringify(v.statistic))}"` : "";
+  if (v.identifiable === true && v.value !== null && v.value !== undefined) {
+    const [s, unit] = paUnit(v.value);
+    const f = (x) => (Number(x) / s).toPrecision(3);
+    const iv = Array.isArray(v.interval) && v.interval.length === 2 ? ` (95 % ${f(v.interval[0])}-${f(v.interval[1])} ${unit})` : "";
+    return `<p class="youngs-verdict" data-identifiable="true"${tip}><b>E = ${f(v.value)} ${unit}</b>${iv}` +
+      (v.reason ? ` <span class="muted">${esc(v.reason)}</span>` : "") + `</p>`;
+  }
+  if (v.identifiable === false) {
+    if (v.reason === "not fitted") return `<p class="youngs-verdict" data-identifiable="false">E not fitted</p>`;
+    return `<p class="youngs-verdict" data-identifiable="false"${tip}>E not identifiable from these data: ${esc(v.reason || "no reason given")}</p>`;
+  }
+  if (v.value !== null && v.value !== undefined) {
+    const [s, unit] = paUnit(v.value);
+    return `<p class="youngs-verdict" data-identifiable="unknown">E = ${(Number(v.value) / s).toPrecision(3)} ${unit} (no identifiability verdict)</p>`;
+  }
+  return `<p class="youngs-verdict" data-identifiable="unknown">E: no verdict</p>`;
+}
 
 // Train and validation loss (mm) per epoch as an SVG line plot; dashed: the loss without correction.
 function lossPlot(losses, bestEpoch, baseline) {
@@ -302,11 +336,11 @@ function diagnosisSummary(r, id) {
   const fmt = (v) => (typeof v === "number" ? Number(v).toPrecision(3) : Array.isArray(v) ? `[${v.map(fmt).join(", ")}]` : esc(JSON.stringify(v)));
   const params = (p) => Object.entries(p || {}).map(([k, v]) => `${esc(k)} = ${fmt(v)}`).join(", ");
   const ym = r.youngs_modulus || {};
+  // the E the base model ran at (when E is not identifiable: the replay's choice, not an estimate)
   const E = typeof ym === "number" ? ym : (ym.value ?? ym.replay_grid_value_used);
-  const eText = E === null || E === undefined ? "?" : `${Number(E).toPrecision(4)} Pa` +
-    (ym.value !== null && ym.value !== undefined && ym.interval ? ` (95 % ${ym.interval.map((v) => Number(v).toPrecision(3)).join(" - ")} Pa)` : ym.reason ? ` (E ${esc(ym.reason)})` : "");
   const yesNo = (v) => (v && typeof v === "object" ? Object.entries(v).map(([k, b]) => `${esc(k)}: ${b ? "yes" : "no"}`).join(", ") : v ? "yes" : "no");
-  const out = [`<p>base model at E = ${eText}: test error ${mm((r.baseline || {}).test_error)} mm</p>`];
+  const out = [youngsVerdict(ym),
+    `<p>base model at E = ${E === null || E === undefined ? "?" : `${Number(E).toPrecision(4)} Pa`}: test error ${mm((r.baseline || {}).test_error)} mm</p>`];
   if (!causes.length) out.push(`<p id="diagnosis-verdict"><b>No effect found</b>: nothing explains the residual beyond the noise.</p>`);
   else {
     out.push(`<table id="causes-table"><thead><tr><th>cause</th><th>parameters</th><th>test error (mm)</th><th>gain</th><th>confidence</th><th>identifiable</th><th>delta chi2</th></tr></thead><tbody>` +

@@ -14,7 +14,8 @@ method needs the fewest simulations):
    because it is common to every frame: the fit is repeated near the optimum with the
    probe one standard error (``Calibration.probe_sigma``, from the corner touches)
    higher, and that shift of log E is added in quadrature (delta method, 1.96 sigma);
-4. identifiability: something must set a scale for E (force data, gravity, a foundation
+4. identifiability (:func:`core.identification.verdict.youngs_verdict`, the one rule the
+   sweep's verdict applies too): something must set a scale for E (force data, gravity, a foundation
    of fixed stiffness), the profile must rise by at least ``min_rise`` (relative) within
    a decade on both sides, and the interval must span less than ``max_ratio``. A
    displacement-controlled probe without gravity or force data fails the first test:
@@ -37,15 +38,24 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Callable, Sequence
+from typing import Callable
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
+from core.identification.objective import (  # the objective and its pieces moved there (issue 19)
+    _bootstrap,
+    _calibration_shift,
+    _force_noise,
+    _Objective,
+    _structurally_identifiable,
+    _top_noise,
+)
 from core.identification.sweep import PAPER_COARSE
-from core.identification.trials import Trial, TrialResult, run_trial
+from core.identification.trials import Trial, run_trial
+from core.identification.verdict import MAX_RATIO, MIN_RISE, widen_interval, youngs_verdict
 from core.preparation import PreparedSession
 from core.simulation.replay import noise_floor
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
@@ -101,6 +111,10 @@ class FitResult:
     """E refitted to the force under other laws, Poisson's ratios and grids
     (:func:`core.identification.model_form.youngs_model_form`, on the replay grid's scale),
     whose range the interval holds; None without force data."""
+    statistic: dict | None = None
+    """What the identifiability rule compared (``statistic`` of
+    :func:`core.identification.verdict.youngs_verdict`, on the replay grid: rises of J a
+    decade either side, the interval before the model form and its ratio, Pa)."""
 
     def to_json(self) -> dict:
         return {
@@ -119,6 +133,7 @@ class FitResult:
                     "probe_height_sigma_m": None if not math.isfinite(self.probe_sigma) else self.probe_sigma,
                     "relative_shift_per_probe_sigma": self.calibration_shift,
                 },
+                "statistic": self.statistic,
                 "law": self.law,
                 "law_note": "E is the modulus of this material law; the paper's corotational law read "
                 "~18 % higher than stable neo-Hookean on force data and ~6 % on gravity data with "
@@ -146,146 +161,6 @@ class FitResult:
         }
 
 
-class _Objective:
-    """Evaluates and caches J(E) over the train sequences (one trial per sequence)."""
-
-    def __init__(self, prepared, names, base: Trial, executor: Executor, use_force: bool, d0, f0, progress, metric="top"):
-        self.metric = metric
-        self.prepared, self.names, self.base, self.executor = prepared, names, base, executor
-        self.use_force, self.d0, self.f0 = use_force, d0, f0
-        self.cache: dict[float, list[TrialResult]] = {}
-        self.evaluations = 0
-        self.progress = progress
-
-    def results(self, Es: Sequence[float]) -> None:
-        todo = sorted({float(E) for E in Es} - set(self.cache))
-        if not todo:
-            return
-        trials = [replace(self.base, sequence=n, youngs_modulus=E) for E in todo for n in self.names]
-        out = self.executor.map(run_trial, self.prepared, trials)
-        self.evaluations += len(trials)
-        for i, E in enumerate(todo):
-            self.cache[E] = out[i * len(self.names) : (i + 1) * len(self.names)]
-        if self.progress:
-            self.progress(len(self.cache), f"{self.evaluations} replays")
-
-    def terms(self, E: float, weights: list[np.ndarray] | None = None) -> tuple[float, float, float | None]:
-        rs = self.cache[float(E)]
-        if not all(r.ok for r in rs):
-            return math.inf, math.nan, None
-        w = weights or [np.ones(r.frame_counts.size) for r in rs]
-        if self.metric == "top":  # RMS signed top-face residual (unbiased under noise)
-            d = math.sqrt(
-                sum((wi * r.frame_top_sq).sum() for wi, r in zip(w, rs)) / sum((wi * r.frame_top_counts).sum() for wi, r in zip(w, rs))
-            )
-        else:  # the paper's mean distance to the nearest super-sampled vertex
-            d = sum((wi * r.frame_sums).sum() for wi, r in zip(w, rs)) / sum((wi * r.frame_counts).sum() for wi, r in zip(w, rs))
-        J = d / self.d0
-        f = None
-        if self.use_force:
-            f = math.sqrt(sum((wi * r.frame_force_sq).sum() for wi, r in zip(w, rs)) / sum(wi.sum() for wi in w))
-            J += f / self.f0
-        return float(J), float(d), f
-
-    def __call__(self, logE: float) -> float:
-        E = float(10.0**logE)
-        self.results([E])
-        return self.terms(E)[0]
-
-
-def _top_noise(prepared: PreparedSession, names, grid) -> float:
-    """RMS signed top residual (m) of rest frames against the rest mesh: its noise level."""
-    from core.identification.residuals import top_residuals
-    from core.simulation import box_mesh
-
-    rest = box_mesh(prepared.size, grid).nodes
-    res = [top_residuals(prepared.sequences[n].clouds[i], rest, grid, prepared.size) for n in names for i in prepared.rest_frames(n)]
-    res = np.concatenate(res) if res else np.zeros(0)
-    return float(np.sqrt(np.mean(res**2))) if res.size > 10 else 1e-3
-
-
-def _force_noise(prepared: PreparedSession, names) -> float:
-    vals = []
-    for n in names:
-        seq = prepared.sequences[n]
-        idx = prepared.rest_frames(n)
-        if seq.force is None or idx.size == 0:
-            continue
-        f = seq.force_at(seq.frame_times[idx])
-        vals.append(np.sum(f**2, axis=1))
-    if not vals:
-        return 1e-3
-    return max(float(np.sqrt(np.concatenate(vals).mean())), 1e-3)
-
-
-def _argmin_log(Es: np.ndarray, J: np.ndarray) -> float:
-    """argmin over a sorted log grid, refined by a parabola through the neighbours."""
-    i = int(np.nanargmin(J))
-    x = np.log10(Es)
-    if 0 < i < len(Es) - 1 and np.all(np.isfinite(J[i - 1 : i + 2])):
-        x0, x1, x2 = x[i - 1 : i + 2]
-        y0, y1, y2 = J[i - 1 : i + 2]
-        den = (x0 - x1) * (x0 - x2) * (x1 - x2)
-        a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / den
-        b = (x2**2 * (y0 - y1) + x1**2 * (y2 - y0) + x0**2 * (y1 - y2)) / den
-        if a > 0:
-            return float(10.0 ** np.clip(-b / (2 * a), x0, x2))
-    return float(Es[i])
-
-
-def _bootstrap(obj: _Objective, Es: np.ndarray, n_boot: int, seed: int, block: float) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    first = obj.cache[float(Es[0])]
-    blocks = []
-    for r, n in zip(first, obj.names):
-        t = obj.prepared.sequences[n].frame_times
-        blocks.append(np.floor((t - t[0]) / block).astype(int))
-    out = np.empty(n_boot)
-    for b in range(n_boot):
-        seqs = rng.integers(0, len(obj.names), len(obj.names))
-        w = [np.zeros(len(bl)) for bl in blocks]
-        for s in seqs:
-            nb = blocks[s].max() + 1
-            picks = rng.integers(0, nb, nb)
-            counts = np.bincount(picks, minlength=nb)
-            w[s] += counts[blocks[s]]
-        J = np.array([obj.terms(E, w)[0] for E in Es])
-        out[b] = _argmin_log(Es, J)
-    return out
-
-
-def _structurally_identifiable(base: Trial, use_force: bool) -> bool:
-    """Whether anything in the data or the model sets a scale for E (Pa): measured force,
-    a body force, or a foundation of fixed stiffness (Pa/m). Without them every
-    quasi-static term is invariant to scaling E (stress ~ E strain, contact is a
-    displacement constraint), so only dynamics and damping remain -- the paper's flat
-    Table 2. Such a minimum is weak and carries the model-form error (measured: 30 kPa
-    on a 5 kPa truth, 13x5x5 corotational against 25x9x9 neo-Hookean, 6 s sequences)."""
-    if use_force:
-        return True
-    for e in base.effects:
-        kind = dict(e).get("kind")
-        if kind == "gravity" and any(float(v) != 0.0 for v in dict(e).get("g", (0.0, 0.0, -9.81))):
-            return True
-        if kind == "base_compliance":
-            return True
-    return False
-
-
-def _calibration_shift(obj: _Objective, E_star: float, sigma: float) -> tuple[float, int]:
-    """|log10 shift| of the optimum when the probe sits ``sigma`` (m) higher than calibrated,
-    and the replays it took. Five points within 0.15 decade of ``E_star``, parabolic argmin."""
-    offset = {"kind": "kinematic_offset", "offset": [0.0, 0.0, float(sigma)]}
-    base = replace(obj.base, effects=tuple(obj.base.effects) + (offset,))
-    pert = _Objective(obj.prepared, obj.names, base, obj.executor, obj.use_force, obj.d0, obj.f0, None, obj.metric)
-    Es = E_star * 10.0 ** np.array([-0.15, -0.05, 0.0, 0.05, 0.15])
-    pert.results(Es)
-    J = np.array([pert.terms(E)[0] for E in Es])
-    if not np.isfinite(J).any():
-        return 0.0, pert.evaluations
-    return abs(math.log10(_argmin_log(Es, J) / E_star)), pert.evaluations
-
-
 def fit_youngs_modulus(
     prepared: PreparedSession,
     *,
@@ -294,8 +169,8 @@ def fit_youngs_modulus(
     bounds: tuple[float, float] = (1e1, 1e6),
     use_force: bool | None = None,
     refine_mesh: bool = True,
-    min_rise: float = 0.02,
-    max_ratio: float = 3.0,
+    min_rise: float = MIN_RISE,
+    max_ratio: float = MAX_RATIO,
     n_boot: int = 400,
     seed: int = 0,
     metric: str = "top",
@@ -356,54 +231,21 @@ def fit_youngs_modulus(
 
     boot = _bootstrap(obj, Es, n_boot, seed, block=1.0)
     lo_b, hi_b = (float(v) for v in np.percentile(boot, [2.5, 97.5]))
-    lo_i, hi_i = lo_b, hi_b
 
-    def rise(side: int) -> float:
-        Eside = E_star * 10.0**side
-        cand = [(abs(math.log10(E / Eside)), obj.terms(E)[0]) for E in Es if (E - E_star) * side > 0]
-        if not cand:  # at the search bound: no evidence that side
-            return 0.0
-        return (min(cand)[1] - J_star) / J_star
-
-    rise_lo, rise_hi = rise(-1), rise(+1)
-    profiled = rise_lo >= min_rise and rise_hi >= min_rise
+    # identifiability: the one rule of core.identification.verdict (the sweep applies it too)
     structural = _structurally_identifiable(base, use_force)
-    identifiable = profiled and structural and hi_i / lo_i <= max_ratio
+    d_star = obj.terms(E_star)[1]
+    rule = dict(structural=structural, bootstrap=(lo_b, hi_b), E_star=E_star, J_star=J_star, min_rise=min_rise,
+                max_ratio=max_ratio, residual=d_star, metric=metric, use_force=use_force)
+    verdict = youngs_verdict(Es, J, **rule)
     probe_sigma = float(prepared.calibration.probe_sigma)
     shift = 0.0
-    if identifiable and math.isfinite(probe_sigma) and probe_sigma > 0:
+    if verdict["identifiable"] and math.isfinite(probe_sigma) and probe_sigma > 0:
         shift, n_cal = _calibration_shift(obj, E_star, probe_sigma)
         obj.evaluations += n_cal
-        widen = (1.96 * shift) ** 2
-        lo_i = E_star / 10.0 ** math.sqrt(math.log10(E_star / lo_b) ** 2 + widen) if lo_b < E_star else lo_b
-        hi_i = E_star * 10.0 ** math.sqrt(math.log10(hi_b / E_star) ** 2 + widen) if hi_b > E_star else hi_b
-        identifiable = hi_i / lo_i <= max_ratio
-    d_star = obj.terms(E_star)[1]
-    if identifiable:
-        reason = (
-            f"profile rises {100 * rise_lo:.0f} % / {100 * rise_hi:.0f} % a decade below / above the optimum; "
-            f"95 % interval spans a factor {hi_i / lo_i:.2f}"
-        )
-    elif profiled and not structural:
-        reason = (
-            f"structurally not identifiable: without force data, gravity or a foundation of known stiffness "
-            f"the quasi-static shape under a displacement-controlled probe does not depend on E; the profile's "
-            f"minimum near {E_star:.3g} Pa (rises {100 * rise_lo:.0f} % / {100 * rise_hi:.0f} % a decade away) comes "
-            f"from dynamics and damping, where model-form error dominates, and is not reported"
-        )
-    elif profiled:
-        reason = (
-            f"the profile has a minimum, but the 95 % interval {lo_i:.3g}-{hi_i:.3g} Pa spans a factor "
-            f"{hi_i / lo_i:.2f} (> {max_ratio:g}): the data and the calibration cannot pin E down"
-        )
-    else:
-        span = Es[np.isfinite(J)]
-        reason = (
-            f"flat profile: a tenfold change of E changes the train objective by only "
-            f"{100 * max(rise_lo, 0):.1f} % / {100 * max(rise_hi, 0):.1f} % ({'RMS top residual' if metric == 'top' else 'error'} {d_star * 1e3:.3f} mm); "
-            f"bootstrap argmin ranges {lo_i:.3g}-{hi_i:.3g} Pa over {span.min():.3g}-{span.max():.3g} Pa"
-            + ("" if use_force else "; without force data or gravity a displacement-controlled probe says almost nothing about E")
-        )
+        verdict = youngs_verdict(Es, J, calibration_shift=shift, **rule)
+    identifiable, reason = verdict["identifiable"], verdict["reason"]
+    lo_i, hi_i = widen_interval(E_star, (lo_b, hi_b), shift)
 
     refined = refined_grid(base.grid)
     refined_value = None
@@ -463,4 +305,5 @@ def fit_youngs_modulus(
         probe_sigma=probe_sigma,
         calibration_shift=float(10.0**shift - 1.0),
         model_form=model_form,
+        statistic=verdict["statistic"],
     )

@@ -1,8 +1,13 @@
-"""The paper's grid search for Young's modulus (Wu et al. 2020, Sec. 4.3, Tables 1-2)."""
+"""The paper's grid search for Young's modulus (Wu et al. 2020, Sec. 4.3, Tables 1-2).
+
+A sweep also carries the fit's verdict on E (:func:`core.identification.verdict.sweep_verdict`):
+the lowest error of the grid is not an estimate when the whole sweep is within the noise.
+"""
 
 from __future__ import annotations
 
 import csv
+import json
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -13,6 +18,7 @@ import numpy as np
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.trials import Trial, TrialResult, run_trial
+from core.identification.verdict import sweep_verdict
 from core.preparation import PreparedSession
 __all__ = ["PAPER_COARSE", "refine_grid", "SweepResult", "sweep", "write_sweep"]
 
@@ -29,9 +35,18 @@ def refine_grid(best: float) -> list[float]:
 
 @dataclass(frozen=True)
 class SweepResult:
-    """Rows of a sweep: one per (E, sequence), in submission order."""
+    """Rows of a sweep: one per (E, sequence), in submission order.
+
+    Attributes:
+        results: the trials.
+        verdict: whether these data identify E, by the fit's rule
+            (:func:`core.identification.verdict.sweep_verdict`: ``identifiable``, ``value``
+            Pa or None, ``interval`` [lo, hi] Pa or None, ``reason``, ``statistic``); None
+            when not computed.
+    """
 
     results: tuple[TrialResult, ...]
+    verdict: dict | None = None
 
     def table(self) -> dict[float, float]:
         """Mean error (m) per E over the swept sequences (NaN if any trial diverged)."""
@@ -44,6 +59,8 @@ class SweepResult:
         }
 
     def best(self) -> float:
+        """The swept E (Pa) with the lowest mean error: the paper's "best" value. Not an
+        estimate of E unless ``verdict["identifiable"]``."""
         table = {E: e for E, e in self.table().items() if np.isfinite(e)}
         if not table:
             raise TissueTwinError("every trial of the sweep diverged")
@@ -59,6 +76,7 @@ def sweep(
     refine: bool = False,
     executor: Executor | None = None,
     progress: Callable[[int, int], None] | None = None,
+    verdict: bool = True,
 ) -> SweepResult:
     """Replay the sequences for every Young's modulus (and the fine grid if ``refine``).
 
@@ -69,6 +87,9 @@ def sweep(
         base: template trial for the other parameters (Poisson's ratio, grid, effects, numerics).
         refine: add :func:`refine_grid` around the best coarse value, as the paper did.
         executor: where trials run (default: in this process).
+        verdict: attach the fit's verdict on E (``SweepResult.verdict``; a bootstrap over
+            the sweep's frames, plus 5 E values near the optimum for the calibration term
+            when the rest of the fit's rule holds).
 
     A diverged trial is recorded with status "diverged" and the sweep goes on.
     """
@@ -95,12 +116,17 @@ def sweep(
         fine = [E for E in refine_grid(coarse.best()) if E not in values]
         extra = [replace(base, sequence=n, youngs_modulus=E) for E in fine for n in names]
         results += executor.map(run_trial, prepared, extra, tick)
-    return SweepResult(tuple(results))
+    result = SweepResult(tuple(results))
+    if verdict:
+        result = SweepResult(result.results, sweep_verdict(prepared, result, executor=executor))
+    return result
 
 
 def write_sweep(result: SweepResult, out: str | Path) -> Path:
     """Write ``sweep.csv`` (youngs_modulus,poisson_ratio,sequence,mean_error,status; errors
-    in m, rounded to 1e-12 m) and ``sweep.png`` (error against E, log axis, like Tables 1-2)."""
+    in m, rounded to 1e-12 m), ``sweep.png`` (error against E, log axis, like Tables 1-2)
+    and, with a verdict, ``sweep.json`` (``{"youngs_modulus": verdict, "table": [{E Pa,
+    mean_error m or null}]}``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     tmp = out / "sweep.csv.tmp"
@@ -111,6 +137,9 @@ def write_sweep(result: SweepResult, out: str | Path) -> Path:
             err = f"{r.mean_error:.12f}" if r.ok else ""
             w.writerow([f"{r.trial.youngs_modulus:g}", f"{r.trial.poisson_ratio:g}", r.trial.sequence, err, r.status])
     tmp.replace(out / "sweep.csv")
+    if result.verdict is not None:
+        table = [{"youngs_modulus": E, "mean_error": e if math.isfinite(e) else None} for E, e in result.table().items()]
+        (out / "sweep.json").write_text(json.dumps({"youngs_modulus": result.verdict, "table": table}, indent=2))
     _plot(result, out / "sweep.png")
     return out
 

@@ -55,7 +55,10 @@ def test_sweep_command_writes_the_papers_table(sample_session, tmp_path, capsys)
     assert lines[0] == "youngs_modulus,poisson_ratio,sequence,mean_error,status"
     assert [l.split(",")[0] for l in lines[1:]] == ["100", "10000"] and all(l.endswith(",ok") for l in lines[1:])
     assert (tmp_path / "sweep.png").exists()
-    assert "best E" in capsys.readouterr().out
+    out = capsys.readouterr().out  # the sample session (no force, no gravity): no "best E", the fit's verdict
+    assert "E not identifiable from these data" in out and "best E" not in out
+    verdict = json.loads((tmp_path / "sweep.json").read_text())["youngs_modulus"]
+    assert verdict["identifiable"] is False and verdict["value"] is None and verdict["reason"] in out
     assert main(["sweep", str(sample_session), "--youngs", "abc", "--out", str(tmp_path)]) == 2
 
 

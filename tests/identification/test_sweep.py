@@ -31,6 +31,10 @@ def test_a_diverging_trial_is_marked_and_the_sweep_goes_on(prepared, tmp_path):
     assert list(rows[0]) == ["youngs_modulus", "poisson_ratio", "sequence", "mean_error", "status"]
     assert (tmp_path / "sweep.png").stat().st_size > 0
     assert result.best() == 10.0
+    # the lowest error is at the end of the grid and the other value diverged: no evidence, no estimate
+    assert result.verdict["identifiable"] is False and result.verdict["value"] is None
+    assert result.verdict["statistic"]["rise_below"] == 0.0
+    assert (tmp_path / "sweep.json").exists()
 
 
 def test_two_worker_local_cluster_gives_the_same_csv_as_serial(prepared, tmp_path):

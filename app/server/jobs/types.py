@@ -215,7 +215,8 @@ def run_sweep(p: SweepParams, ctx: JobContext) -> dict:
         "table": [{"youngs_modulus": E, "mean_error": (e if math.isfinite(e) else None)} for E, e in table.items()],
         "rows": [{"youngs_modulus": r.trial.youngs_modulus, "sequence": r.trial.sequence, "status": r.status,
                   "mean_error": r.mean_error if r.ok else None} for r in result.results],
-        "best": min(finite, key=finite.get) if finite else None,
+        "best": min(finite, key=finite.get) if finite else None,  # the lowest error: an estimate only if identifiable
+        "youngs_modulus": result.verdict,  # the fit's verdict on E (core.identification.verdict), as fit and diagnose report it
         "plot": "sweep.png",
     }
 
