@@ -57,6 +57,14 @@ class DiagnosisConfig:
         alpha: the family-wise false-claim rate of each selection round: on a session
             without any effect, the chance that anything is claimed (Holm 1979 across the
             candidate kinds, each kind's null distribution from the session itself).
+        consistency_alpha: one-sided level at which a candidate that makes a channel of
+            the held-out data (top face, side faces, force) worse is refused
+            (:func:`core.diagnosis.inference.channel_worsening`): a cause that is there
+            improves every channel it changes, a model-form gap fitted by a wrong cause
+            is paid for in another channel. 0 turns the check off. It only refuses
+            claims, so it cannot raise the false-claim rate ``alpha``; a real cause fails
+            it only where it leaves a channel unchanged in expectation (at most this
+            rate) or where a model-form gap outweighs it there.
         n_null: wild block-bootstrap replicates of each kind's null distribution.
         block: length of the bootstrap's blocks of frames, s (the residual is correlated
             within a poke; blocks of 1 s are treated as independent).
@@ -103,6 +111,7 @@ class DiagnosisConfig:
     side_probe_exclusion: float = 0.010
     nuisances: tuple[str, ...] = NUISANCES
     alpha: float = 0.01
+    consistency_alpha: float = 0.05
     n_null: int = 9999
     block: float = 1.0
     lm_iterations: int = 4
@@ -130,5 +139,7 @@ class DiagnosisConfig:
             raise TissueTwinError(f"unknown nuisance(s) {bad}; expected some of {list(NUISANCES)}")
         if not 0.0 < self.alpha < 0.5:
             raise TissueTwinError(f"alpha must be in (0, 0.5), got {self.alpha}")
+        if not 0.0 <= self.consistency_alpha < 0.5:
+            raise TissueTwinError(f"consistency_alpha must be in [0, 0.5), got {self.consistency_alpha}")
         if self.n_null < 99:
             raise TissueTwinError(f"n_null must be at least 99, got {self.n_null}")

@@ -179,15 +179,23 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
               "is the drop of the validation chi-square (surface and force), its p-value the share of the "
               "session's own noise replicates (a wild block bootstrap of its residuals) that drop as much, and "
               f"the kinds of a round are tested together by Holm's procedure: on a session without any effect, "
-              f"the chance that anything is claimed is at most {100 * diag.config.alpha:g} %.", "",
+              f"the chance that anything is claimed is at most {100 * diag.config.alpha:g} %. A kind that passes but "
+              "makes a channel of the held-out data (top face, side faces, force) significantly worse is not "
+              "claimed: its gain in one channel is the model-form gap, paid for in another.", "",
               "| round | candidate | chi2 drop: surface | chi2 drop: force | critical | p-value | confidence | claimed |",
               "|---|---|---|---|---|---|---|---|"]
     for c in diag.candidates:
         fo = "n/a" if c.delta_chi2_force is None else f"{c.delta_chi2_force:.0f}"
         crit = "n/a" if c.critical is None or not math.isfinite(c.critical) else f"{c.critical:.0f}"
         pv = "n/a" if c.p_value is None else f"{c.p_value:.3g}"
+        worse = [k for k, v in (c.channels or {}).items() if v.get("worse")]
+        rp = c.reproduction or {}
+        small = (c.p_value is not None and c.p_value <= diag.config.alpha and c.critical is not None
+                 and rp.get("expected", math.inf) < c.critical)
+        verdict = ("yes" if c.claimed else f"no: {' and '.join(worse)} worse" if worse
+                   else "no: its change is below the critical value" if small else "")
         lines.append(f"| {c.round} | {c.kind} | {c.delta_chi2_field:.0f} | {fo} | {crit} | {pv} | {c.confidence:.2f} | "
-                     f"{'yes' if c.claimed else ''} |")
+                     f"{verdict} |")
     lines += ["", "## What the fix is worth", ""]
     lo, hi = diag.gain_interval
     lines.append(

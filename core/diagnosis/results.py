@@ -4,7 +4,7 @@ diagnosis.json contract of ``SESSION_FORMAT.md``."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.diagnosis.config import DiagnosisConfig
@@ -43,7 +43,13 @@ class CauseReport:
             times the places its fit searched (:mod:`core.diagnosis.inference`).
         critical: the T a claim of this kind needed in its round (its null's quantile at
             alpha over the kinds tested). score: ``delta_chi2 / critical``.
-        significant: rejected by Holm's procedure at the round's alpha.
+        significant: rejected by Holm's procedure at the round's alpha, and no channel
+            made significantly worse (``channels``).
+        channels: per channel of the held-out data ("top", "sides", "force"): its chi2
+            drop, the wild cluster t of its worsening, that t's critical value and
+            whether it was significantly worse (``inference.channel_worsening``).
+        reproduction: the held-out drop against the drop the fitted change itself would
+            make, with the wild cluster t of their difference (``inference.reproduction``).
     """
 
     kind: str
@@ -65,6 +71,8 @@ class CauseReport:
     critical: float | None = None
     score: float | None = None
     significant: bool = False
+    channels: dict = field(default_factory=dict)
+    reproduction: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -169,7 +177,7 @@ class Diagnosis:
             "candidates": [
                 {"kind": c.kind, "round": c.round, "delta_chi2": c.delta_chi2, "delta_chi2_field": c.delta_chi2_field,
                  "delta_chi2_force": c.delta_chi2_force, "p_value": c.p_value, "critical": _num(c.critical),
-                 "score": _num(c.score), "significant": c.significant, "explained": c.explained,
+                 "score": _num(c.score), "significant": c.significant, "channels": c.channels, "reproduction": c.reproduction, "explained": c.explained,
                  "confidence": c.confidence, "claimed": c.claimed, "parameters": c.parameters,
                  "fit_variables": c.fit_variables}
                 for c in self.candidates

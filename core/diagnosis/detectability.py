@@ -1,0 +1,167 @@
+"""Detectability: how large each effect kind would have to be for these data to claim it.
+
+For every kind, its signature is simulated at the kind's reference size against the
+last round's model and scaled (:meth:`core.simulation.effects.Effect.strength`); the
+smallest size that the session's own noise replicates would claim at 80 % power is the
+kind's ``min_size`` (SESSION_FORMAT.md ``detectability``): "not found above this size",
+"cannot tell" when even the kind's ``max_size`` would not show, "found" or "confounded"
+as the selection decided (:mod:`core.diagnosis.engine`). Split from the engine, which
+holds the selection rounds.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.results import Detectability
+from core.simulation.effects import EFFECT_KINDS, PhantomContext
+
+if TYPE_CHECKING:  # the engine's round: its model, nuisances, held-out test and residuals
+    from core.diagnosis.engine import _Round as Round
+
+__all__ = ["detectability"]
+
+
+
+def _signature(ev: Evidence, rnd: "Round", effect: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """(train, validation) change of the residual vectors when ``effect`` joins the round's model."""
+    spec = Spec(tuple(rnd.fixed) + (effect,), rnd.youngs_modulus)
+    tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
+    d_t, d_v = ev.vector(tr) - rnd.r_train, ev.vector(va) - rnd.r_validation
+    if not (np.all(np.isfinite(d_t)) and np.all(np.isfinite(d_v))):
+        return None
+    return d_t, d_v
+
+
+def _expected_statistic(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, s: float, sigma2: float) -> float:
+    """The held-out statistic T (chi2 units) that ``s`` times the signature (D_t, D_v) would
+    give without noise: the fit along D explains it on train, and the model of the round
+    keeps what its bounded nuisances, fitted on train, leave of it on validation."""
+    h = rnd.nuisance.held_out(s * D_v, s * D_t)
+    return float(h @ h) / sigma2
+
+
+POWER = 0.8
+"""A kind's ``min_size`` is claimed with this probability (the minimum detectable effect at 80 % power)."""
+
+
+def _min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed: dict, critical: float) -> float | None:
+    """The smallest size of ``cls`` with the ``assumed`` parameters that the round's test
+    would claim with probability :data:`POWER`: the strength whose noise-free held-out
+    statistic, plus the noise's part at that power (from the session's own replicates,
+    :meth:`HeldOutTest.min_strength`), reaches ``critical``. The nuisances keep their bounds (a
+    0.8 mm sag is not a 0.2 mm registration error), so this is solved by bisection on the
+    bounded projection. The signature is simulated at the reference size and scaled, then
+    once more at the size found (the change is not linear in the size for every kind)."""
+    size = float(cls.reference_size)
+    s_max = cls.strength(cls.max_size)
+    found = None
+    for _ in range(2):
+        sig = _signature(ev, rnd, cls.sized(size, ctx, **assumed).to_dict())
+        st = cls.strength(size)
+        if sig is None or st == 0:
+            return found
+        D_t, D_v = sig[0] / st, sig[1] / st
+        s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER,
+                                  expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
+        if s is None:
+            return None
+        found = cls.size_at(s)
+        if abs(found - size) <= 0.05 * max(abs(size), 1e-12):
+            break
+        size = found
+    return found
+
+
+def _why(kind: str, cls, min_size: float | None, assumed: dict, palp: dict, answer: str) -> str:
+    unit = cls.size_unit
+    said = ", ".join(f"{k} {v}" for k, v in assumed.items()) if assumed else ""
+    channels = "the surface and the probe force" if palp.get("force") else "the surface (no force recorded)"
+    if min_size is None:
+        hint = {
+            "friction": "no press slid along the surface" if not palp.get("slides") else
+                        "the slides were too short or too light to show it",
+            "inclusion": "no press came near enough to it" if not palp.get("top_presses") else
+                         "a stiffer spot under the presses did not change " + channels + " beyond the noise and the nuisances",
+            "probe_radius": "top presses alone, without force, cannot tell a larger sphere from a deeper press"
+                            if not palp.get("side_presses") and not palp.get("force") else
+                            "its wider dent stays within the noise and the nuisances",
+            "viscoelasticity": "the presses were too short or too slow to show relaxation",
+            "time_offset": "the probe moved too little while the camera watched",
+        }.get(kind, "its change of " + channels + " stays within the noise and the base model's nuisances")
+        return (f"cannot tell from this data: even {cls.max_size:g} {unit}" + (f" ({said})" if said else "")
+                + f" would not be claimed: {hint}")
+    text = (f"an effect of {min_size:.3g} {unit} or more" + (f" ({said})" if said else "")
+            + f" would have been claimed from {channels}")
+    if answer == "found":
+        return "found; " + text
+    if answer == "confounded":
+        return "confounded with another kind that explains the same residual; " + text
+    return "not found: " + text
+
+
+def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: DiagnosisConfig, cands: dict,
+                  nulls: dict, palp: dict, *, claimed: list[str], confounded: list[list[str]],
+                  refused: dict[str, str] | None = None, small: dict[str, tuple] | None = None) -> dict:
+    """{kind: :class:`Detectability`} for every kind of ``cfg.kinds`` against the round's model.
+
+    A kind in ``refused`` ({kind: why}: its held-out evidence passed but it made a channel
+    significantly worse) is "cannot tell" with no size, whatever its signature's size. A
+    kind in ``small`` ({kind: (S, critical, T)}: its held-out drop passed but the change
+    its fit makes, S, is below what a claim needs) is "not found" above its size, with
+    that said in its ``why``.
+
+    The critical value of a kind is its null's quantile at ``alpha`` over the number of
+    kinds and its searches (from the round's fit of it when it was tested, else from a
+    fit along its signature alone).
+    """
+    out = {}
+    in_group = {k for g in confounded for k in g}
+    n_kinds = len(cfg.kinds)
+    for kind in cfg.kinds:
+        cls = EFFECT_KINDS[kind]
+        searches = cands[kind].searches
+        level = cfg.alpha / max(n_kinds * searches, 1)
+        best = None  # (size, assumed)
+        for assumed in cls.assumptions(ctx):
+            e = nulls.get(kind)
+            if e is not None and e.null.size > 1:
+                null = e.null
+            else:
+                sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
+                if sig is None:
+                    continue
+                null = rnd.test.null(sig[0][:, None], sig[1][:, None])
+            critical = max(rnd.test.critical(null, level), 0.0)
+            size = _min_size(ev, rnd, cls, ctx, assumed, critical)
+            size = None if size is None or size > cls.max_size else size
+            if best is None:
+                best = (size, assumed)
+            elif cls.assume == "least_detectable":
+                if best[0] is not None and (size is None or size > best[0]):
+                    best = (size, assumed)
+            elif size is not None and (best[0] is None or size < best[0]):
+                best = (size, assumed)
+        if best is None:
+            best = (None, {})
+        size, assumed = best
+        answer = ("found" if kind in claimed else "confounded" if kind in in_group
+                  else "cannot_tell" if size is None or kind in (refused or {}) else "not_found")
+        params = dict(assumed)
+        if cls.assume == "least_detectable" and len(cls.assumptions(ctx)) > 1:
+            params["note"] = "the least detectable of the directions tried"
+        if answer == "cannot_tell" and kind in (refused or {}):
+            out[kind] = Detectability(kind, None, params, refused[kind], answer, cls.size_unit)
+            continue
+        why = _why(kind, cls, size, assumed, palp, answer)
+        if kind in (small or {}) and answer != "found":
+            S, crit, T = small[kind]
+            why += (f"; its fit passed on held-out data (chi2 drop {T:.0f}, critical {crit:.0f}) but the change it "
+                    f"makes is worth only {S:.0f}: the validation data ask for {0.5 * (T / max(S, 1e-12) + 1):.1f} "
+                    "times what the train data fitted, a residual of its shape that does not reproduce")
+        out[kind] = Detectability(kind, size, params, why, answer, cls.size_unit)
+    return out
