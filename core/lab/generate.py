@@ -340,6 +340,10 @@ def _build_model(job: _SimJob):
 _MODEL_CACHE: dict = {}
 
 
+TRUTH_RETRIES: tuple[tuple[int, int], ...] = ((3, 1), (3, 2), (5, 4))
+"""(Newton iterations, dt divisor) tried in turn when a truth simulation diverges."""
+
+
 def _run_sim(job: _SimJob, callback: ProgressCallback | None = None):
     """Run one truth simulation; returns (positions (F, N, 3) float32, contact force (F, 3),
     status, message, wall time)."""
@@ -627,6 +631,7 @@ def generate_session(
             for k in range(cfg.workers):
                 submit(k)
             seq_meta = []
+            retried: dict[str, dict] = {}
             for i, seq in enumerate(sequences):
                 base = done_frames / total_frames
                 span = len(seq.frame_times) / total_frames
@@ -650,6 +655,20 @@ def generate_session(
                     def sim_cb(fr, msg, _b=base, _s=span, _n=seq.name):
                         report(_b + _s * sim_share * fr, f"{_n}: truth simulation")
                     positions, force, status, message, sim_wall = _run_sim(job_for(seq), sim_cb)
+                if status != "ok":
+                    # a stiff contact on a fine mesh can outrun one Newton iteration per
+                    # step (field seed 111: 31x11x11, 1.4e6 E/m, diverged at 2.9 s):
+                    # retry with the stronger numerics of TRUTH_RETRIES, as a careful lab
+                    # would, and record what it took in truth.json
+                    for newton, dt_div in TRUTH_RETRIES:
+                        job = replace(job_for(seq), newton_iterations=max(newton, cfg.newton_iterations),
+                                      dt=cfg.dt / dt_div)
+                        report(base, f"{seq.name}: truth diverged ({message}); retrying with {job.newton_iterations} "
+                                     f"Newton iterations, dt {job.dt:.3g} s")
+                        positions, force, status, message, sim_wall = _run_sim(job)
+                        if status == "ok":
+                            retried[seq.name] = {"newton_iterations": job.newton_iterations, "dt": job.dt}
+                            break
                 if status != "ok":
                     raise LabError(f"truth simulation of {seq.name} (seed {seed}) {status}: {message}")
 
@@ -722,6 +741,8 @@ def generate_session(
             # keys added only when used, so that sessions of older configs stay byte-identical
             if cfg.contact_stiffness_per_modulus != 2e5:
                 truth["sim"]["contact_stiffness_per_modulus"] = float(cfg.contact_stiffness_per_modulus)
+            if retried:
+                truth["sim"]["retried"] = retried
             if drawn is not None:
                 truth["lab_variation"] = {**drawn, "depth_noise_sigma": float(cfg.depth_noise.sigma),
                                           "ranges": cfg.variation.to_dict()}
