@@ -11,6 +11,7 @@ holds the selection rounds.
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -113,7 +114,10 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     significantly worse) is "cannot tell" with no size, whatever its signature's size. A
     kind in ``small`` ({kind: (S, critical, T)}: its held-out drop passed but the change
     its fit makes, S, is below what a claim needs) is "not found" above its size, with
-    that said in its ``why``.
+    that said in its ``why``. A kind whose last fit (``nulls``) moved the model by a change
+    worth a claim (``S >= critical``) that the validation data did not confirm (``T <
+    critical``) is "cannot tell" too: train and validation disagree on it, and the
+    linearised power behind ``min_size`` does not hold there.
 
     The critical value of a kind is its null's quantile at ``alpha`` over the number of
     kinds and its searches (from the round's fit of it when it was tested, else from a
@@ -149,12 +153,23 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         if best is None:
             best = (None, {})
         size, assumed = best
+        refused = dict(refused or {})
+        e = nulls.get(kind)
+        if (kind not in claimed and kind not in in_group and kind not in refused and e is not None
+                and math.isfinite(e.critical) and e.reproduction.get("expected", 0.0) >= e.critical > e.statistic):
+            # the session's own fit moved the model by a change that would have been claimed,
+            # and the held-out data did not confirm it: train and validation disagree on
+            # this kind, and the linearised power behind min_size cannot be trusted here
+            refused[kind] = (f"cannot tell from this data: the fit on the train sequences found a change worth "
+                             f"{e.reproduction['expected']:.0f} (chi2; a claim needs {e.critical:.0f}) but the "
+                             f"validation sequences gave it {e.statistic:.0f}: train and validation disagree on this "
+                             "kind (a model-form gap of its shape), so its size cannot be bounded from these data")
         answer = ("found" if kind in claimed else "confounded" if kind in in_group
-                  else "cannot_tell" if size is None or kind in (refused or {}) else "not_found")
+                  else "cannot_tell" if size is None or kind in refused else "not_found")
         params = dict(assumed)
         if cls.assume == "least_detectable" and len(cls.assumptions(ctx)) > 1:
             params["note"] = "the least detectable of the directions tried"
-        if answer == "cannot_tell" and kind in (refused or {}):
+        if answer == "cannot_tell" and kind in refused:
             out[kind] = Detectability(kind, None, params, refused[kind], answer, cls.size_unit)
             continue
         why = _why(kind, cls, size, assumed, palp, answer)
