@@ -326,8 +326,7 @@ class _TabView:
         self._handles["probe"] = scene.add_icosphere(
             "/replay/probe", radius=seq.probe_radius, color=(220, 60, 60), position=tuple(float(v) for v in seq.probe_centres[0]))
         self._apply_visibility()
-        centre = np.nanmean(seq.positions[0], axis=0)
-        self._set_camera(position=centre + np.array([0.0, -0.16, 0.12]), look_at=centre, up=(0.0, 0.0, 1.0))
+        self._frame(seq.positions[0], (0.0, -0.16, 0.12))
 
     def _apply_visibility(self) -> None:
         for key, box in (("cloud", self.gui_cloud), ("fem", self.gui_fem), ("corrected", self.gui_corrected), ("probe", self.gui_probe)):
@@ -436,8 +435,31 @@ class _TabView:
                 finite = ref[np.all(np.isfinite(ref), axis=1)]
                 self._set_camera(position=(0.0, 0.0, 0.0), look_at=np.median(finite, axis=0), up=(0.0, -1.0, 0.0))
             else:
-                centre = np.array([size[0] / 2, size[1] / 2, size[2]])
-                self._set_camera(position=centre + np.array([0.0, -0.12, 0.16]), look_at=centre, up=(0.0, 0.0, 1.0))
+                self._frame_box(size)
+
+    def _frame_box(self, size) -> None:
+        """Frame the phantom box of ``size`` (3,) m, from the front and above."""
+        sx, sy, sz = (float(v) for v in size)
+        corners = np.array([[x, y, z] for x in (0.0, sx) for y in (0.0, sy) for z in (0.0, sz)])
+        self._frame(corners, (0.0, -0.12, 0.16))
+
+    def _frame(self, points: np.ndarray, direction) -> None:
+        """Point the tab's camera at ``points`` (N, 3) m from ``direction`` (3,) (any length)
+        at the distance where their bounding sphere fills about 70 % of the view's height
+        (the camera's vertical field of view; 0.2 m used to leave a 69 mm phantom at a fifth)."""
+        pts = np.asarray(points, float).reshape(-1, 3)
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if pts.size == 0:
+            return
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        centre, radius = 0.5 * (lo + hi), max(0.5 * float(np.linalg.norm(hi - lo)), 1e-3)
+        try:
+            fov = float(self.client.camera.fov)
+        except Exception:  # noqa: BLE001 - a camera not yet reported by the browser
+            fov = 1.3
+        d = radius / (0.7 * np.tan(0.5 * fov))
+        u = np.asarray(direction, float) / np.linalg.norm(direction)
+        self._set_camera(position=centre + d * u, look_at=centre, up=(0.0, 0.0, 1.0))
 
     def _set_camera(self, position, look_at, up) -> None:
         camera = self.client.camera
@@ -542,9 +564,7 @@ class _TabView:
                 f"**before** (Kabsch on picks, orange): rms {res['rms_init'] * 1e3:.2f} mm  \n"
                 f"**after** (ICP, green): rms {res['rms'] * 1e3:.2f} mm, fitness {res['fitness']:.2f}  \n"
                 "Accept to save the session's calibration.")
-            size = self._icp_data[2]
-            centre = np.array([size[0] / 2, size[1] / 2, size[2]])
-            self._set_camera(position=centre + np.array([0.0, -0.12, 0.16]), look_at=centre, up=(0.0, 0.0, 1.0))
+            self._frame_box(self._icp_data[2])
             return res
 
     def accept_icp(self) -> dict | None:
@@ -570,8 +590,7 @@ class _TabView:
         self._replay_root.visible = mode == "replay"
         self._icp_root.visible = mode == "icp"
         if mode == "replay" and self.view is not None:
-            centre = np.nanmean(self.view.seq.positions[self.frame], axis=0)
-            self._set_camera(position=centre + np.array([0.0, -0.16, 0.12]), look_at=centre, up=(0.0, 0.0, 1.0))
+            self._frame(self.view.seq.positions[self.frame], (0.0, -0.16, 0.12))
 
     def visible(self) -> dict[str, bool]:
         """This tab's layer toggles: cloud, fem, corrected, probe."""

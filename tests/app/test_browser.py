@@ -70,6 +70,23 @@ def _project(points: np.ndarray, cam: dict, box: dict) -> np.ndarray:
     return np.stack([box["x"] + (nx + 1) / 2 * box["width"], box["y"] + (1 - ny) / 2 * box["height"]], axis=1)
 
 
+def _corners(size) -> np.ndarray:
+    sx, sy, sz = (float(v) for v in size)
+    return np.array([[x, y, z] for x in (0.0, sx) for y in (0.0, sy) for z in (0.0, sz)])
+
+
+def _span(cam: dict, size, box: dict) -> float:
+    """The larger share of the canvas's width or height the phantom box covers."""
+    px = _project(_corners(size), cam, box)
+    return max(float(np.ptp(px[:, 0])) / box["width"], float(np.ptp(px[:, 1])) / box["height"])
+
+
+def _camera_framing(url, size):
+    cam = _state(url)["camera"]
+    centre = 0.5 * np.asarray(size, float)
+    return cam if cam and np.allclose(cam["look_at"], centre, atol=2e-3) else None
+
+
 def _camera_settled(url, position):
     cam = _state(url)["camera"]
     return cam if cam and np.allclose(cam["position"], position, atol=2e-3) else None
@@ -113,6 +130,11 @@ def test_dashboard_job_viewer_and_icp_in_chromium(small_session, tmp_path, chrom
             first_frame = time.monotonic() - t0
             time.sleep(1.0)  # let WebGL draw
             canvas = _canvas(page)
+            # the first view frames the phantom (measured: the box spans 0.42 of the canvas; the
+            # former fixed 0.2 m distance gives about 0.17 by the same projection)
+            size0 = json.loads((session / "session.json").read_text())["phantom"]["size"]
+            cam0 = _until(lambda: (c := _state(server.url)["camera"]) and c, "the viewer's camera")
+            assert _span(cam0, size0, canvas.bounding_box()) > 0.35
             png0 = canvas.screenshot(path=str(shots / "viewer-frame0.png"))
             assert _variance(png0) > 20.0, "3D canvas is blank"
 
@@ -148,9 +170,9 @@ def test_dashboard_job_viewer_and_icp_in_chromium(small_session, tmp_path, chrom
             canvas.screenshot(path=str(shots / "icp-reference-picks.png"))
             frame.get_by_role("tab", name="ICP init").click()
             frame.get_by_role("button", name="phantom surface").click()
-            centre = np.array([sx / 2, sy / 2, sz])
-            cam = _until(lambda: _camera_settled(server.url, centre + [0.0, -0.12, 0.16]), "the camera over the phantom")
+            cam = _until(lambda: _camera_framing(server.url, [sx, sy, sz]), "the camera framing the phantom")
             time.sleep(0.5)
+            assert _span(cam, [sx, sy, sz], canvas.bounding_box()) > 0.35
             for x, y in _project(pp, cam, canvas.bounding_box()):
                 page.mouse.click(float(x), float(y))
                 time.sleep(0.3)
