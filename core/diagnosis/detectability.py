@@ -107,14 +107,14 @@ def _why(kind: str, cls, min_size: float | None, assumed: dict, palp: dict, answ
 
 def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: DiagnosisConfig, cands: dict,
                   nulls: dict, palp: dict, *, claimed: list[str], confounded: list[list[str]],
-                  refused: dict[str, str] | None = None, small: dict[str, tuple] | None = None) -> dict:
+                  refused: dict[str, str] | None = None, small: dict[str, str] | None = None) -> dict:
     """{kind: :class:`Detectability`} for every kind of ``cfg.kinds`` against the round's model.
 
     A kind in ``refused`` ({kind: why}: its held-out evidence passed but it made a channel
     significantly worse) is "cannot tell" with no size, whatever its signature's size. A
-    kind in ``small`` ({kind: (S, critical, T)}: its held-out drop passed but the change
-    its fit makes, S, is below what a claim needs) is "not found" above its size, with
-    that said in its ``why``. A kind whose last fit (``nulls``) moved the model by a change
+    kind in ``small`` ({kind: why}: its held-out drop passed but the change its fit makes
+    is below what a claim needs, :func:`core.diagnosis.inference.claim_check`) is "not
+    found" above its size, with that said in its ``why``. A kind whose last fit (``nulls``) moved the model by a change
     worth a claim (``S >= critical``) that the validation data did not confirm (``T <
     critical``) is "cannot tell" too: train and validation disagree on it, and the
     linearised power behind ``min_size`` does not hold there.
@@ -174,9 +174,6 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
             continue
         why = _why(kind, cls, size, assumed, palp, answer)
         if kind in (small or {}) and answer != "found":
-            S, crit, T = small[kind]
-            why += (f"; its fit passed on held-out data (chi2 drop {T:.0f}, critical {crit:.0f}) but the change it "
-                    f"makes is worth only {S:.0f}: the validation data ask for {0.5 * (T / max(S, 1e-12) + 1):.1f} "
-                    "times what the train data fitted, a residual of its shape that does not reproduce")
+            why += f"; its fit passed on held-out data but {small[kind]}: a residual of its shape that does not reproduce"
         out[kind] = Detectability(kind, size, params, why, answer, cls.size_unit)
     return out

@@ -119,19 +119,7 @@ class _Evidence:
     p_value: float
     critical: float
     channels: dict       # channel_worsening of the held-out residual, per channel
-    reproduction: dict   # inference.reproduction: the drop against the fitted change's own
-
-
-def _field_mask(ev: Evidence, role: str) -> np.ndarray:
-    """(L,) bool: the entries of a residual vector of ``role`` that belong to the field."""
-    out = []
-    B = ev.layout.n_bins
-    for n in ev.names[role]:
-        F = ev.prepared.sequences[n].frame_times.size
-        out.append(np.ones(F * B, dtype=bool))
-        if ev.use_force:
-            out.append(np.zeros(F * 3, dtype=bool))
-    return np.concatenate(out)
+    reproduction: dict   # inference.reproduction: the drop against the fitted change's own worth
 
 
 def _channel_masks(ev: Evidence, role: str) -> dict[str, np.ndarray]:
@@ -176,10 +164,11 @@ def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x:
 
 
 def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
-            field_t: np.ndarray, field_v: np.ndarray, start: np.ndarray | None = None) -> _Evidence:
+            channels: dict[str, np.ndarray], start: np.ndarray | None = None) -> _Evidence:
     """Fit ``cand`` on train beside the round's nuisances and judge it on validation
     (from ``start`` when given, else from the kind's starts; its look-elsewhere factor is
-    the kind's declared ``searches`` either way)."""
+    the kind's declared ``searches`` either way); ``channels``: :func:`_channel_masks` of
+    the validation vector."""
     fit = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance, start=start)
     spec = Spec(tuple(rnd.fixed) + tuple(fit.effects), rnd.youngs_modulus)
     tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
@@ -190,7 +179,8 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
         return _Evidence(fit, va, -math.inf, (-math.inf, None), np.zeros(1), 1.0, math.inf, {}, {})
     d = (e_v**2 - h**2) / ev.sigma2
     T = float(d.sum())
-    chans = (float(d[field_v].sum()), float(d[~field_v].sum()) if ev.use_force else None)
+    force = channels.get("force", np.zeros(d.size, dtype=bool))
+    chans = (float(d[~force].sum()), float(d[force].sum()) if ev.use_force else None)
     # the null's signature: the fit's local Jacobian and the secant of the change it made
     # (where the local signature on validation vanishes, the secant still carries the
     # change; a null without it let a fit far from linear pass with any held-out drop)
@@ -210,10 +200,9 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
         # validation worse, but less than noise would, is no evidence for the kind
         p = rnd.test.p_value(T, null, cand.searches) if T > 0 else 1.0
     crit = rnd.test.critical(null, cfg.alpha / max(n_kinds * cand.searches, 1))
-    worse = channel_worsening(e_v, h, _channel_masks(ev, "validation"), ev.blocks("validation"),
-                              cfg.consistency_alpha, ev.sigma2) if cfg.consistency_alpha > 0 else {}
-    return _Evidence(fit, va, T, chans, null, p, crit, worse,
-                     reproduction(e_v, h, ev.blocks("validation"), ev.sigma2))
+    blocks = rnd.test.blocks_validation
+    worse = channel_worsening(e_v, h, channels, blocks, cfg.consistency_alpha, ev.sigma2) if cfg.consistency_alpha > 0 else {}
+    return _Evidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
 
 
 def diagnose_prepared(
@@ -283,7 +272,7 @@ def diagnose_prepared(
     face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
     sigma2 = float(face_sigma2[0]) if dof[0] > 0 else float(ss.sum() / max(dof.sum(), 1))
     ev.weigh_faces(face_sigma2, sigma2)
-    field_t, field_v = _field_mask(ev, "train"), _field_mask(ev, "validation")
+    channels_v = _channel_masks(ev, "validation")
     palp = palpation(prepared, seen)
 
     E_base = cfg.youngs_modulus
@@ -300,7 +289,7 @@ def diagnose_prepared(
     reports: list[CauseReport] = []
     confounded: list[list[str]] = []
     refused: dict[str, str] = {}  # kinds significant but refused by channel_worsening: why
-    small: dict[str, tuple] = {}  # kinds significant whose fitted change is below a claim: (S, critical, T)
+    small: dict[str, str] = {}  # kinds significant whose fitted change is below a claim: why
     active = list(cands)
     last: _Round | None = None
     last_evidence: dict[str, _Evidence] = {}
@@ -322,21 +311,22 @@ def diagnose_prepared(
             # a later round starts each kind from its fit of the round before (the model
             # gained a cause; the kind's optimum moves, its basin rarely does)
             prev = last_fits.get(kind)
-            evid[kind] = _assess(ev, cands[kind], rnd, cfg, len(active), field_t, field_v,
+            evid[kind] = _assess(ev, cands[kind], rnd, cfg, len(active), channels_v,
                                  start=None if prev is None else prev.x[: len(cands[kind].names)])
             last_fits[kind] = evid[kind].fit
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
-        # a kind is claimed when Holm's procedure rejects its absence and it makes no
-        # channel of the held-out data significantly worse (inference.channel_worsening)
+        # a kind is claimed when Holm's procedure rejects its absence and it passes
+        # inference.claim_check (its fitted change reproduces, no channel made worse)
         significant = set()
         for k in holm(pvals, cfg.alpha):
             verdict = claim_check(evid[k].statistic, evid[k].critical, evid[k].reproduction, evid[k].channels)
-            refused.pop(k, None), small.pop(k, None)
+            refused.pop(k, None)
+            small.pop(k, None)
             if verdict is None:
                 significant.add(k)
             elif verdict[0] == "not_reproduced":
-                small[k] = (evid[k].reproduction["expected"], evid[k].critical, evid[k].statistic)
+                small[k] = verdict[1]
             else:
                 refused[k] = verdict[1]
         adjusted = holm_adjusted(pvals)
@@ -379,7 +369,7 @@ def diagnose_prepared(
             def extra(kind: str, given: str) -> bool:
                 g = evid[given].fit
                 sub = _Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
-                e = _assess(ev, cands[kind], sub, cfg, len(active), field_t, field_v)
+                e = _assess(ev, cands[kind], sub, cfg, len(active), channels_v)
                 return e.p_value <= cfg.alpha / max(len(active), 1)
 
             survivors = [best]

@@ -48,8 +48,8 @@ class CauseReport:
         channels: per channel of the held-out data ("top", "sides", "force"): its chi2
             drop, the wild cluster t of its worsening, that t's critical value and
             whether it was significantly worse (``inference.channel_worsening``).
-        reproduction: the held-out drop against the drop the fitted change itself would
-            make, with the wild cluster t of their difference (``inference.reproduction``).
+        reproduction: the held-out drop ("observed") against the drop the fitted change
+            itself would make ("expected"), chi2 (``inference.reproduction``).
     """
 
     kind: str

@@ -12,7 +12,6 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-import socket
 import time
 import zipfile
 from concurrent.futures import ThreadPoolExecutor
@@ -23,15 +22,9 @@ import pytest
 from app.server import db as dbm
 from app.server.main import create_app
 from app.server.settings import Settings
+from tests.app._server import FINAL, _free_port
 
-FINAL = {"done", "failed", "cancelled", "interrupted"}
 GRAVITY = {"kind": "gravity", "g": [0.0, 0.0, -9.81]}
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

@@ -179,9 +179,9 @@ def test_claim_check_keeps_a_reproduced_change_and_refuses_the_rest():
 
 def test_reproduction_matches_the_drop_decomposition():
     rng = np.random.default_rng(3)
-    noise, _, blocks = _channels(rng)
+    noise, _, _ = _channels(rng)
     sig = np.sin(np.linspace(0, 20, noise.size))
-    out = reproduction(noise + sig, noise, blocks)  # the data hold the change exactly
+    out = reproduction(noise + sig, noise)  # the data hold the change exactly
     S = float(sig @ sig)
     assert out["expected"] == pytest.approx(S)
     assert out["observed"] == pytest.approx(float((noise + sig) @ (noise + sig) - noise @ noise))
