@@ -361,17 +361,25 @@ function diagnosisSummary(r, id) {
 
 // ---------------------------------------------------------------- viewer
 let viewerPort = null;
+// this dashboard tab's token: its viewer iframe connects on /tab/<token>, and the view and
+// ICP buttons name it, so they act on this tab's viewer only (kept across reloads of the tab)
+const viewerTab = sessionStorage.getItem("tt-viewer-tab") || (() => {
+  const t = Array.from({ length: 16 }, () => Math.floor(Math.random() * 36).toString(36)).join("");
+  sessionStorage.setItem("tt-viewer-tab", t);
+  return t;
+})();
 async function setupViewer() {
   const cfg = await api("GET", "/api/config");
   $("#cluster").textContent = `jobs on ${cfg.scheduler}`;
   viewerPort = cfg.viewer_port;
   if (!viewerPort) { $("#viewer-status").textContent = "viewer disabled"; return; }
-  $("#viewer-frame").src = `${location.protocol}//${location.hostname}:${viewerPort}/`;
+  const ws = `${location.protocol === "https:" ? "wss" : "ws"}://${location.hostname}:${viewerPort}/tab/${viewerTab}`;
+  $("#viewer-frame").src = `${location.protocol}//${location.hostname}:${viewerPort}/?websocket=${encodeURIComponent(ws)}`;
 }
 
 async function showInViewer(id) {
   try {
-    const st = await api("POST", "/api/viewer/show", { job_id: id });
+    const st = await api("POST", "/api/viewer/show", { job_id: id, tab: viewerTab });
     $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames, layers ${(st.layers || []).join(", ")} (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
     $("#viewer").scrollIntoView();
   } catch (e) { $("#viewer-status").textContent = e.message; }
@@ -379,7 +387,7 @@ async function showInViewer(id) {
 
 async function startIcp(sessionId) {
   try {
-    await api("POST", "/api/viewer/icp", { session_id: sessionId });
+    await api("POST", "/api/viewer/icp", { session_id: sessionId, tab: viewerTab });
     $("#viewer-status").textContent = `ICP initialisation on session ${sessionId}: open the "ICP init" tab in the viewer`;
     $("#viewer").scrollIntoView();
   } catch (e) { $("#viewer-status").textContent = e.message; }

@@ -28,3 +28,39 @@ def chromium():
             yield browser
         finally:
             browser.close()
+
+
+@pytest.fixture(scope="module")
+def replayed(small_session, tmp_path_factory):
+    """A data directory whose database holds the `small` session and its finished replay
+    job 1 (seq01), written as the replay job writes it (``write_replay`` and the viewer's
+    arrays) and stored as the runner stores a finished job: the browser tests need no Dask job."""
+    from app.server import db as dbm
+    from app.server.jobs.types import ReplayParams
+    from app.viewer.data import write_viewer_arrays
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig, replay, write_replay
+
+    data = tmp_path_factory.mktemp("replayed") / "data"
+    folder = (data / "jobs" / "1").resolve()
+    config = ReplayConfig(sequences=("seq01",))
+    prepared = prepare_session(small_session, config)
+    result = replay(small_session, config, prepared=prepared)
+    write_replay(result, folder)
+    write_viewer_arrays(prepared, result, folder)
+    summary = {**result.to_json(), "viewer": True}
+    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
+    try:
+        factory = dbm.make_sessionmaker(engine)
+        with factory.begin() as db:
+            rec = dbm.SessionRecord(name="small", path=str(small_session.resolve()), source="registered")
+            db.add(rec)
+            db.flush()
+            now = dbm.utcnow()
+            params = ReplayParams(session_id=rec.id, sequences=["seq01"]).model_dump(mode="json")
+            db.add(dbm.JobRecord(id=1, type="replay", params=params, session_id=rec.id, status=dbm.DONE, progress=1.0,
+                                 message="done", result=summary, artifact_dir=str(folder), created_at=now,
+                                 started_at=now, finished_at=now, log="made by the test from core's replay\n"))
+    finally:
+        engine.dispose()
+    return data

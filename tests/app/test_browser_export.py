@@ -2,9 +2,8 @@
 chromium + playwright): a finished replay job shows "VTU", "SOFA" and "MJCF" links to
 ``/api/jobs/{id}/export`` in the job list and in its result panel, and one downloads.
 
-The replay's folder is written by core's replay run here (``write_replay``, as the
-replay job does) and its database row is the one the runner stores for a finished job,
-so the module needs no Dask job; the server then serves the real export.
+The finished replay job comes from the ``replayed`` fixture (tests/app/conftest.py): no
+Dask job; the server then serves the real export.
 """
 
 from __future__ import annotations
@@ -17,34 +16,6 @@ from tests.app._server import Server
 from tests.app.conftest import needs_chromium
 
 pytestmark = [pytest.mark.slow, needs_chromium]
-
-
-@pytest.fixture(scope="module")
-def replayed(small_session, tmp_path_factory):
-    """A data directory whose database holds the `small` session and its finished replay job 1 (seq01)."""
-    from app.server import db as dbm
-    from app.server.jobs.types import ReplayParams
-    from core.simulation.replay import ReplayConfig, replay, write_replay
-
-    data = tmp_path_factory.mktemp("replayed") / "data"
-    folder = (data / "jobs" / "1").resolve()
-    result = replay(small_session, ReplayConfig(sequences=("seq01",)))
-    write_replay(result, folder)
-    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
-    try:
-        factory = dbm.make_sessionmaker(engine)
-        with factory.begin() as db:
-            rec = dbm.SessionRecord(name="small", path=str(small_session.resolve()), source="registered")
-            db.add(rec)
-            db.flush()
-            now = dbm.utcnow()
-            params = ReplayParams(session_id=rec.id, sequences=["seq01"]).model_dump(mode="json")
-            db.add(dbm.JobRecord(id=1, type="replay", params=params, session_id=rec.id, status=dbm.DONE, progress=1.0,
-                                 message="done", result=result.to_json(), artifact_dir=str(folder), created_at=now,
-                                 started_at=now, finished_at=now, log="made by the test from core's replay\n"))
-    finally:
-        engine.dispose()
-    return data
 
 
 def test_export_links_of_a_finished_replay_in_chromium(replayed, chromium, tmp_path):

@@ -140,14 +140,23 @@ class JobTypeOut(BaseModel):
     params_schema: dict[str, Any]
 
 
+ViewerTab = Annotated[str | None, Field(
+    pattern=r"^[A-Za-z0-9_-]{1,64}$",
+    description="the dashboard tab's viewer token (its iframe's websocket path /tab/<token>): act on that "
+                "viewer tab only; omitted: every open viewer tab")]
+
+
 class ViewerShow(_Request):
     job_id: int
     sequence: str | None = Field(None, max_length=200)
+    tab: ViewerTab = None
 
 
 class ViewerFrame(_Request):
     frame: int = Field(ge=0, le=10**9)
+    tab: ViewerTab = None
 
 
 class ViewerIcp(_Request):
     session_id: int
+    tab: ViewerTab = None

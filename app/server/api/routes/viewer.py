@@ -29,30 +29,32 @@ def viewer_state(viewer: ViewerDep):
 
 @router.post("/show", responses=errors(404, 409))
 def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
-    """Load a finished replay job's run (once) and show a sequence (404: no such job or
+    """Load a finished replay job's run (once) and show a sequence in the viewer tab of
+    ``tab`` (the dashboard's own iframe) or, without it, in every tab (404: no such job or
     sequence; 422: not a finished job with a viewer run)."""
     viewer = _need(viewer)
     job = job_svc.get_job(db, body.job_id)
     if job.status != "done" or not (job.result or {}).get("viewer"):
         raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replay and train jobs")
     try:
-        viewer.show_run(job.id, body.sequence)
+        viewer.show_run(job.id, body.sequence, tab=body.tab)
     except KeyError as exc:  # the run has no such sequence
         raise NotFound(str(exc.args[0]) if exc.args else f"job {job.id} has no sequence {body.sequence!r}") from exc
-    return viewer.state()
+    return viewer.state(body.tab)
 
 
 @router.post("/frame", responses=errors(409))
 def set_frame(body: ViewerFrame, viewer: ViewerDep):
     viewer = _need(viewer)
-    viewer.set_frame(body.frame)
-    return viewer.state()
+    viewer.set_frame(body.frame, tab=body.tab)
+    return viewer.state(body.tab)
 
 
 @router.post("/icp", responses=errors(404, 409))
 def start_icp(body: ViewerIcp, db: DB, viewer: ViewerDep):
-    """Open the picking mode of the viewer on a session's reference cloud."""
+    """Open the picking mode of the viewer on a session's reference cloud, in the viewer
+    tab of ``tab`` or, without it, in every tab."""
     viewer = _need(viewer)
     session_svc.get_session(db, body.session_id)
-    viewer.start_icp(body.session_id)
-    return viewer.state()
+    viewer.start_icp(body.session_id, tab=body.tab)
+    return viewer.state(body.tab)
