@@ -222,7 +222,7 @@ async function showResult(id) {
     for (const [run, rep] of Object.entries(r.runs || {})) out.push(`<h4>${esc(run)}</h4>` + lossPlot(rep.losses || [], rep.best_epoch, rep.baseline_loss || {}));
   } else if (j.type === "diagnose" && j.status === "done") {
     out.push(diagnosisSummary(r, id));
-    if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the extended model's mesh in 3D</button>`);
+    if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the diagnosis in 3D</button> <span class="muted">(the viewer's Diagnosis tab: residuals, ${(r.extended || {}).kinds && r.extended.kinds.length ? "each cause's change and geometry, " : ""}the answer per kind, the largest-error frames)</span>`);
   } else if (j.type === "generate" && j.status === "done") {
     out.push(`<p>new session ${r.session_id}: ${esc(r.session)}</p>`);
   }

@@ -14,7 +14,7 @@ import numpy as np
 
 from app.viewer.data import RunArrays, SequenceArrays
 
-__all__ = ["ViewerCallbacks", "SequenceView", "SharedRuns", "error_colors", "colorbar", "nice_ceil_mm"]
+__all__ = ["ViewerCallbacks", "SequenceView", "SharedRuns", "error_colors", "signed_colors", "colorbar", "nice_ceil_mm"]
 
 _NAN_GREY = np.array([150, 150, 150], dtype=np.uint8)
 
@@ -30,9 +30,21 @@ def error_colors(err: np.ndarray, vmax: float) -> np.ndarray:
     return rgb
 
 
-def colorbar(width: int = 256, height: int = 16) -> np.ndarray:
-    """(height, width, 3) uint8 viridis ramp, left = 0."""
-    ramp = error_colors(np.linspace(0.0, 1.0, width), 1.0)
+def signed_colors(value: np.ndarray, vmax: float) -> np.ndarray:
+    """(…) signed values in m -> (…, 3) uint8 RGB on coolwarm over [-vmax, vmax] (blue
+    negative, white zero, red positive); NaN -> grey."""
+    from matplotlib import colormaps
+
+    cmap = colormaps["coolwarm"]
+    x = np.clip(0.5 + 0.5 * np.nan_to_num(value / max(vmax, 1e-12), nan=0.0), 0.0, 1.0)
+    rgb = (cmap(x)[..., :3] * 255).astype(np.uint8)
+    rgb[~np.isfinite(value)] = _NAN_GREY
+    return rgb
+
+
+def colorbar(width: int = 256, height: int = 16, signed: bool = False) -> np.ndarray:
+    """(height, width, 3) uint8 ramp: viridis, left = 0; or (``signed``) coolwarm, left = -max."""
+    ramp = signed_colors(np.linspace(-1.0, 1.0, width), 1.0) if signed else error_colors(np.linspace(0.0, 1.0, width), 1.0)
     return np.repeat(ramp[None, :, :], height, axis=0)
 
 
@@ -69,7 +81,14 @@ class ViewerCallbacks:
 
 
 class SequenceView:
-    """Per-sequence display buffers, made once when the sequence is first shown."""
+    """Per-sequence display buffers, made once when the sequence is first shown.
+
+    The FEM layer is coloured by a *colour mode*: ``"error"`` (per-vertex error, viridis)
+    or, for a diagnose run, ``"base_residual"`` / ``"extended_residual"`` (the systematic
+    signed residual of the base / extended model, the latter drawn on the extended mesh)
+    and ``"change_<kind>"`` (what that claimed cause alone changes of the surface), signed
+    on coolwarm (:meth:`colour_modes`).
+    """
 
     def __init__(self, seq: SequenceArrays):
         self.seq = seq
@@ -81,16 +100,55 @@ class SequenceView:
             err = seq.corrected_vertex_error
             self.corrected_colors = (error_colors(err, self.vmax) if err is not None
                                      else np.tile(np.array([255, 140, 0], np.uint8), (*seq.corrected_positions.shape[:2], 1)))
-        self._glb: dict[tuple[str, int], bytes] = {}
+        self._glb: dict[tuple[str, int, str], bytes] = {}
+        self._signed: dict[str, tuple[np.ndarray, float]] = {}
 
-    def glb(self, which: str, f: int) -> bytes:
-        """GLB bytes of the raw (``"fem"``) or corrected mesh at frame ``f`` (cached)."""
-        key = (which, f)
+    def colour_modes(self) -> list[str]:
+        """The colour modes this sequence has: ``"error"``, then its diagnosis layers."""
+        d = self.seq.diagnosis
+        if d is None:
+            return ["error"]
+        modes = ["error", "base_residual"]
+        if d.extended_residual is not None and self.seq.corrected_positions is not None:
+            modes.append("extended_residual")
+        return modes + [f"change_{k}" for k in d.changes]
+
+    def signed_layer(self, mode: str) -> tuple[np.ndarray, float]:
+        """(values (F, N) or (N,), m; legend bound vmax, m) of a signed colour mode.
+
+        Raises:
+            KeyError: the sequence has no such layer.
+        """
+        if mode not in self._signed:
+            d = self.seq.diagnosis
+            if d is None or mode not in self.colour_modes() or mode == "error":
+                raise KeyError(f"sequence {self.seq.name!r} has no colour mode {mode!r}; it has {self.colour_modes()}")
+            values = (d.base_residual if mode == "base_residual" else d.extended_residual if mode == "extended_residual"
+                      else d.changes[mode[len("change_"):]])
+            finite = np.abs(values[np.isfinite(values)])
+            bound = max(float(np.percentile(finite, 90)) if finite.size else 0.0, 1e-5)
+            if mode in ("base_residual", "extended_residual") and d.extended_residual is not None:
+                both = np.abs(np.concatenate([d.base_residual, d.extended_residual]))
+                both = both[np.isfinite(both)]
+                bound = max(float(np.percentile(both, 90)) if both.size else 0.0, 1e-5)  # one scale for both models
+            self._signed[mode] = (values, nice_ceil_mm(bound))
+        return self._signed[mode]
+
+    def glb(self, which: str, f: int, mode: str = "error") -> bytes:
+        """GLB bytes of the raw (``"fem"``) or corrected mesh at frame ``f`` (cached), the
+        raw one coloured by colour ``mode`` (the ``"extended_residual"`` mode draws the
+        extended mesh)."""
+        key = (which, f, mode if which == "fem" else "error")
         if key not in self._glb:
             import trimesh
 
-            pos = self.seq.positions[f] if which == "fem" else self.seq.corrected_positions[f]
-            col = self.colors[f] if which == "fem" else self.corrected_colors[f]
+            if which == "fem" and mode != "error":
+                values, vmax = self.signed_layer(mode)
+                col = signed_colors(values[f] if values.ndim == 2 else values, vmax)
+                pos = self.seq.corrected_positions[f] if mode == "extended_residual" else self.seq.positions[f]
+            else:
+                pos = self.seq.positions[f] if which == "fem" else self.seq.corrected_positions[f]
+                col = self.colors[f] if which == "fem" else self.corrected_colors[f]
             rgba = np.concatenate([col, np.full((col.shape[0], 1), 255, np.uint8)], axis=1)
             mesh = trimesh.Trimesh(np.nan_to_num(pos), self.seq.faces, vertex_colors=rgba, process=False)
             with io.BytesIO() as buf:

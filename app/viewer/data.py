@@ -15,8 +15,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from app.viewer.diagnosis_data import DiagnosisLayers
 
 __all__ = ["SequenceArrays", "RunArrays", "vertex_errors", "write_viewer_arrays", "load_run", "run_label"]
 
@@ -39,6 +43,8 @@ class SequenceArrays:
         probe_centres: (F, 3) probe sphere centres. probe_radius: m.
         corrected_positions: (F, N, 3) the corrected mesh of the run, or None.
         corrected_vertex_error: (F, N) its per-node error, m, or None.
+        diagnosis: the diagnosis layers of a diagnose run
+            (:class:`app.viewer.diagnosis_data.DiagnosisLayers`), or None.
     """
 
     name: str
@@ -54,6 +60,7 @@ class SequenceArrays:
     probe_radius: float
     corrected_positions: np.ndarray | None = None
     corrected_vertex_error: np.ndarray | None = None
+    diagnosis: "DiagnosisLayers | None" = None
 
     @property
     def n_frames(self) -> int:
@@ -66,10 +73,13 @@ class SequenceArrays:
 
 @dataclass(frozen=True)
 class RunArrays:
-    """A replay run: its label and sequences."""
+    """A replay run: its label and sequences; ``diagnosis``: a diagnose run's ``view.json``
+    (answers per kind, claimed causes and their geometry; :mod:`app.viewer.diagnosis_data`),
+    else None."""
 
     label: str
     sequences: dict[str, SequenceArrays]
+    diagnosis: dict | None = None
 
 
 def vertex_errors(positions: np.ndarray, grid, clouds, factor: int = 3) -> np.ndarray:
@@ -140,16 +150,19 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
     """Read a replay run folder (``replay.json``, ``<seq>.npz``, ``viewer/<seq>.npz``).
 
     A folder ``corrected/<seq>.npz`` with ``positions`` (F, N, 3) (and optionally
-    ``vertex_error``), written by a correcting analysis, adds the corrected mesh.
+    ``vertex_error``), written by a correcting analysis, adds the corrected mesh; a folder
+    ``diagnosis/`` (a diagnose job's) adds the diagnosis layers.
 
     Raises:
         FileNotFoundError: the folder is not a replay run with viewer arrays.
     """
+    from app.viewer.diagnosis_data import load_diagnosis_layers
     from core.simulation.mesh import box_mesh
 
     folder = Path(folder)
     meta = json.loads((folder / "replay.json").read_text())
     sequences = {}
+    diagnosis_view = None
     for name in meta["sequences"]:
         raw = np.load(folder / f"{name}.npz")
         view = np.load(folder / VIEWER_DIR / f"{name}.npz")
@@ -163,6 +176,8 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             c = np.load(cpath)
             corrected = c["positions"].astype(np.float32)
             corrected_err = c["vertex_error"].astype(np.float32) if "vertex_error" in c else None
+        layers, shown = load_diagnosis_layers(folder, name)
+        diagnosis_view = diagnosis_view or shown
         sequences[name] = SequenceArrays(
             name=name,
             role=str(view["role"]),
@@ -177,8 +192,9 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             probe_radius=float(view["probe_radius"]),
             corrected_positions=corrected,
             corrected_vertex_error=corrected_err,
+            diagnosis=layers,
         )
-    return RunArrays(label=label or folder.name, sequences=sequences)
+    return RunArrays(label=label or folder.name, sequences=sequences, diagnosis=diagnosis_view)
 
 
 def run_label(job_type: str, folder: str | Path, session: str, result: dict | None = None) -> str:

@@ -18,8 +18,9 @@ toggles; a timeline slider, play/pause, -1/+1 frame, frame number and time. A ru
 loaded once; moving the slider swaps buffers (mesh GLBs are encoded once per frame and
 cached).
 
-ICP tab: :mod:`app.viewer.icp_panel`. Shared buffers and colour maps:
-:mod:`app.viewer.buffers`.
+Diagnosis tab (a diagnose run's residuals, each claimed cause's change and geometry, the
+answer per kind, the largest-error frames): :mod:`app.viewer.diagnosis_panel`. ICP tab:
+:mod:`app.viewer.icp_panel`. Shared buffers and colour maps: :mod:`app.viewer.buffers`.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ import numpy as np
 
 from app.viewer.buffers import SequenceView, SharedRuns, ViewerCallbacks, colorbar, error_colors
 from app.viewer.data import RunArrays, SequenceArrays
+from app.viewer.diagnosis_panel import DiagnosisPanel
 from app.viewer.icp_panel import IcpPanel
 
 __all__ = ["ViewerCallbacks", "WorkbenchViewer", "TabView", "error_colors", "colorbar"]
@@ -41,7 +43,7 @@ __all__ = ["ViewerCallbacks", "WorkbenchViewer", "TabView", "error_colors", "col
 log = logging.getLogger(__name__)
 
 
-class TabView(IcpPanel):
+class TabView(IcpPanel, DiagnosisPanel):
     """One browser tab (one viser client): its own GUI, scene nodes, camera and selection
     (run, sequence, frame, playback, layers, ICP picks), built with ``client.gui`` and
     ``client.scene`` when the tab connects. Choices made in one tab never change another."""
@@ -69,8 +71,10 @@ class TabView(IcpPanel):
         self._replay_root = scene.add_frame("/replay", show_axes=False)
         self._icp_root = scene.add_frame("/icp", show_axes=False, visible=False)
         tabs = client.gui.add_tab_group()
-        self._populate_replay(tabs.add_tab("Replay"))
-        self._populate_icp(tabs.add_tab("ICP init"))
+        replay_tab, diagnosis_tab, icp_tab = tabs.add_tab("Replay"), tabs.add_tab("Diagnosis"), tabs.add_tab("ICP init")
+        self._populate_diagnosis(diagnosis_tab)
+        self._populate_replay(replay_tab)
+        self._populate_icp(icp_tab)
         scene.on_click()(self._on_click)
 
     # ------------------------------------------------------------------ GUI
@@ -153,6 +157,7 @@ class TabView(IcpPanel):
                 self._mute = False
             self.gui_legend_text.content = (f"per-vertex error: 0 mm (left) to {view.vmax * 1e3:g} mm (right); "
                                             "grey: no measured point")
+            self._reset_diagnosis()
             self._build_replay_nodes()
             self._set_mode("replay")
             self.set_frame(frame)
@@ -166,12 +171,12 @@ class TabView(IcpPanel):
                 h.remove()
         self._handles["cloud"] = scene.add_point_cloud(
             "/replay/cloud", seq.cloud(0), colors=(90, 170, 255), point_size=0.0012, precision="float32", point_shape="circle")
-        self._handles["fem"] = scene.add_glb("/replay/fem", self.view.glb("fem", 0))
+        self._handles["fem"] = scene.add_glb("/replay/fem", self.view.glb("fem", 0, self.colour))
         if seq.corrected_positions is not None:
             self._handles["corrected"] = scene.add_glb("/replay/corrected", self.view.glb("corrected", 0))
         self._handles["probe"] = scene.add_icosphere(
             "/replay/probe", radius=seq.probe_radius, color=(220, 60, 60), position=tuple(float(v) for v in seq.probe_centres[0]))
-        self._apply_visibility()
+        self._build_diagnosis_nodes()
         self._frame(seq.positions[0], (0.0, -0.16, 0.12))
 
     def _apply_visibility(self) -> None:
@@ -179,6 +184,9 @@ class TabView(IcpPanel):
             h = self._handles.get(key)
             if h is not None:
                 h.visible = bool(box.value)
+        for key, h in self._handles.items():
+            if key.startswith("geometry:"):
+                h.visible = bool(self.gui_geometry.value)
 
     def set_frame(self, f: int) -> None:
         """Show frame ``f`` (clipped to the sequence): swap the cloud, mesh and probe buffers."""
@@ -189,7 +197,7 @@ class TabView(IcpPanel):
             f = int(np.clip(f, 0, seq.n_frames - 1))
             self.frame = f
             self._handles["cloud"].points = seq.cloud(f)
-            self._handles["fem"].glb_data = self.view.glb("fem", f)
+            self._handles["fem"].glb_data = self.view.glb("fem", f, self.colour)
             if "corrected" in self._handles:
                 self._handles["corrected"].glb_data = self.view.glb("corrected", f)
             self._handles["probe"].position = tuple(float(v) for v in seq.probe_centres[f])
@@ -261,9 +269,10 @@ class TabView(IcpPanel):
             self._frame(self.view.seq.positions[self.frame], (0.0, -0.16, 0.12))
 
     def visible(self) -> dict[str, bool]:
-        """This tab's layer toggles: cloud, fem, corrected, probe."""
+        """This tab's layer toggles: cloud, fem, corrected, probe, geometry (a diagnosis's causes)."""
         return {k: bool(box.value) for k, box in (("cloud", self.gui_cloud), ("fem", self.gui_fem),
-                                                  ("corrected", self.gui_corrected), ("probe", self.gui_probe))}
+                                                  ("corrected", self.gui_corrected), ("probe", self.gui_probe),
+                                                  ("geometry", self.gui_geometry))}
 
     def state(self) -> dict:
         """JSON-able state of this tab: mode, run, sequence, frame, time, layers, playback, picks, camera."""
@@ -280,6 +289,7 @@ class TabView(IcpPanel):
                 "playing": self.playing,
                 "camera": cam,
                 "icp": dict(self.icp),
+                "diagnosis": self.diagnosis_state(),
             }
 
 
@@ -336,7 +346,11 @@ class WorkbenchViewer:
 
     def _connect(self, client) -> None:
         token = self._tab_token(client)
-        tab = TabView(self.shared, client, token=token)
+        try:
+            tab = TabView(self.shared, client, token=token)
+        except Exception:  # noqa: BLE001 - logged (viser would swallow it); the other tabs stay up
+            log.exception("viewer tab %s could not be built", client.client_id)
+            raise
         with self._lock:
             self._tabs[int(client.client_id)] = tab
             shown = dict(self._shown_for.get(token) or self.shown)
@@ -372,8 +386,9 @@ class WorkbenchViewer:
 
     def show_run(self, run_id: int, sequence: str | None = None, tab: str | None = None) -> None:
         """Show ``sequence`` (default: the run's first) of run ``run_id`` at frame 0 in the
-        viewer tabs of dashboard token ``tab`` (None: every open tab) and in such tabs opened
-        later; the run's arrays are loaded on first use and kept.
+        viewer tabs of dashboard token ``tab`` (None: every open tab) and in tabs opened
+        later (a reloaded tab of a token opens what its dashboard last showed); the run's
+        arrays are loaded on first use and kept.
 
         Raises:
             KeyError: the run has no such sequence. Whatever ``load_run`` raises.
@@ -385,8 +400,8 @@ class WorkbenchViewer:
             view.glb("corrected", 0)
         shown = {"run_id": run_id, "sequence": view.seq.name, "frame": 0}
         with self._lock:
+            self.shown = dict(shown)  # what any new tab opens with, whichever dashboard asked
             if tab is None:
-                self.shown = shown
                 self._shown_for.clear()
             else:
                 self._shown_for[tab] = shown

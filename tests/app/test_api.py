@@ -298,32 +298,6 @@ def test_train_job_writes_losses_checkpoint_and_trajectories(client, session_id)
     assert state["layers"] == ["cloud", "fem", "corrected", "probe"]
 
 
-def test_diagnosis_corrected_mesh_is_the_replay_with_the_extended_effects(small_session, tmp_path):
-    """What a diagnose job stores for the viewer's corrected layer (a diagnose job itself
-    takes minutes): the test sequences replayed plainly and with the claimed effects,
-    checked against core's replay run here."""
-    from dataclasses import replace
-
-    from app.server.jobs.types import _write_extended_run
-    from app.viewer.data import load_run
-    from core.simulation import effect_from_dict
-    from core.preparation import prepare_session
-    from core.simulation.replay import ReplayConfig, replay
-    effects = [{"kind": "gravity", "g": [0.0, 0.0, -9.81]}]
-    prepared = prepare_session(small_session, ReplayConfig())
-    shown = _write_extended_run(prepared, (13, 5, 5), 5000.0, effects, tmp_path / "run")
-    assert shown == {"seq01": "extended"}  # the small preset's test sequence
-    run = load_run(tmp_path / "run")
-    seq = run.sequences["seq01"]
-    base = ReplayConfig(youngs_modulus=5000.0, sequences=("seq01",))
-    expected = replay(small_session, replace(base, effects=(effect_from_dict(effects[0]),)), prepared=prepared)
-    np.testing.assert_allclose(seq.corrected_positions, expected.sequences["seq01"].simulation.positions, atol=1e-6)
-    plain = replay(small_session, base, prepared=prepared).sequences["seq01"].simulation.positions
-    np.testing.assert_allclose(seq.positions, plain, atol=1e-6)  # float32 on disk
-    sag = (plain - seq.corrected_positions)[..., 2]
-    assert np.nanmax(sag) > 1e-5  # gravity moves the mesh down: the layers differ
-
-
 def test_cancel_a_running_sweep(client, session_id):
     job = submit(client, "sweep", session_id=session_id, e_min=1e1, e_max=1e6, per_decade=4)  # 21 E x 2 sequences
     wait(client, job["id"], until={"running"} | FINAL)

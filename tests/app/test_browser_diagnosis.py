@@ -154,9 +154,78 @@ def test_diagnosis_summary_and_corrected_mesh_in_chromium(diagnosed, chromium, t
                 other.get_by_role("button", name="+1 frame").click()
             tabs = _until(lambda: (s := _state(server.url))["frame"] == 3 and s["tabs"], "frame 3 in the second tab")
             first = next(t for t in tabs if t["client_id"] == first_id)
-            assert first["frame"] == 0 and first["visible"] == {"cloud": False, "fem": False, "corrected": False, "probe": True}
+            assert first["frame"] == 0 and first["visible"] == {"cloud": False, "fem": False, "corrected": False, "probe": True,
+                                                       "geometry": True}
         finally:
             other.close()
+    finally:
+        page.close()
+        server.stop()
+
+
+def _pick(frame, label: str, option: str) -> None:
+    """Choose ``option`` in the viewer's dropdown ``label`` (a Mantine select)."""
+    frame.get_by_role("combobox", name=label).click()
+    frame.get_by_role("option", name=option).click()
+
+
+def test_diagnosis_layers_in_3d_in_chromium(diagnosed, chromium, tmp_path):
+    """Issue 19 item 3: the Diagnosis tab of the viewer colours the phantom by the base
+    model's systematic residual and by the claimed cause's change (each changes the
+    canvas), draws the cause's geometry (the gravity arrow; toggling it changes the
+    canvas), gives the answer per kind and jumps to the largest-error frame."""
+    data, summary = diagnosed
+    shots = tmp_path / "screenshots"
+    shots.mkdir()
+    server = Server(data, viewer=True)
+    page = chromium.new_page(viewport={"width": 1400, "height": 1500})
+    try:
+        page.goto(server.url + "/")
+        page.wait_for_selector("body[data-ready='1']")
+        frame = page.frame_locator("#viewer-frame")
+        # chromium pauses an off-screen cross-origin iframe: the viewer connects once it is scrolled to
+        page.locator("#viewer-frame").scroll_into_view_if_needed()
+        frame.locator("canvas").first.wait_for(timeout=60_000)
+        _until(lambda: _state(server.url)["clients"] >= 1, "the viewer tab")
+        page.click("#jobs-table tr[data-job-id='1'] .view-btn")
+        st = _until(lambda: (s := _state(server.url))["run_id"] == 1 and s, "the diagnosis run in the viewer")
+        assert st["diagnosis"]["colour_modes"] == ["error", "base_residual", "extended_residual", "change_gravity"]
+        assert st["diagnosis"]["geometry"] == ["geometry:0"]  # the gravity arrow
+        for name, key in (("Measured cloud", "cloud"), ("Corrected mesh", "corrected")):
+            _checkbox(frame, name).click()
+            _until(lambda: not _state(server.url)["visible"][key], f"{name} hidden")
+        canvas = _canvas(page)
+        time.sleep(1.0)
+        shots_by = {"error": _grey(canvas.screenshot(path=str(shots / "colour-error.png")))}
+
+        frame.get_by_role("tab", name="Diagnosis").click()
+        text = frame.locator("body").inner_text()
+        assert "claimed:" in text and "gravity" in text and "found" in text
+        for mode, option in (("base_residual", "base model: systematic residual"),
+                             ("change_gravity", "gravity: its change of the surface")):
+            _pick(frame, "Surface colour", option)
+            _until(lambda: _state(server.url)["diagnosis"]["colour"] == mode, f"colour mode {mode}")
+            frame.get_by_text("mm (blue)", exact=False).first.wait_for(timeout=10_000)  # the signed legend
+            time.sleep(1.0)
+            shots_by[mode] = _grey(canvas.screenshot(path=str(shots / f"colour-{mode}.png")))
+        for a, b in (("error", "base_residual"), ("base_residual", "change_gravity")):
+            changed = np.mean(np.abs(shots_by[a] - shots_by[b]) > 16)
+            assert changed > 0.005, f"{a} -> {b} changed {changed:.2%} of the canvas"
+
+        _checkbox(frame, "Cause geometry").click()
+        _until(lambda: not _state(server.url)["visible"]["geometry"], "the cause geometry hidden")
+        time.sleep(1.0)
+        no_arrow = _grey(canvas.screenshot(path=str(shots / "geometry-off.png")))
+        changed = np.mean(np.abs(no_arrow - shots_by["change_gravity"]) > 16)
+        assert changed > 0.001, f"hiding the gravity arrow changed {changed:.2%} of the canvas"
+
+        st = _state(server.url)
+        worst = st["diagnosis"]["worst_frames"]
+        errors = np.load(data / "jobs" / "1" / "viewer_run" / f"{st['sequence']}.npz")["frame_errors"]
+        assert worst[0] == int(np.nanargmax(errors)) and len(worst) == min(5, errors.size)
+        _pick(frame, "Largest-error frames", f"frame {worst[0]}: {errors[worst[0]] * 1e3:.3f} mm")
+        _until(lambda: _state(server.url)["frame"] == worst[0], "the largest-error frame")
+        page.screenshot(path=str(shots / "dashboard-diagnosis-3d.png"), full_page=True)
     finally:
         page.close()
         server.stop()

@@ -251,8 +251,9 @@ def run_diagnose(p: DiagnoseParams, ctx: JobContext) -> dict:
 
 def write_diagnose_artifacts(diag, prepared, out, progress=None) -> dict:
     """What a diagnose job leaves in its folder ``out``: ``diagnosis.json``, ``report.md``
-    and its figures, and, when causes were claimed, the viewer's run of the test sequences
-    with the extended model as the corrected mesh (``viewer_run/``).
+    and its figures, and the viewer's run of the test sequences (``viewer_run/``): the base
+    model, the model extended by the claimed causes as the corrected mesh, and the
+    diagnosis layers (:mod:`app.viewer.diagnosis_data`).
 
     Args:
         diag: a ``core.diagnosis.Diagnosis``. prepared: the session it diagnosed.
@@ -260,48 +261,23 @@ def write_diagnose_artifacts(diag, prepared, out, progress=None) -> dict:
 
     Returns:
         the job's summary (the diagnosis's JSON, the first figure's name, the sequences
-        the viewer shows and ``"viewer": true`` when there is a corrected mesh).
+        with a corrected mesh, the diagnosis layers and ``"viewer": true``).
     """
+    from app.viewer.diagnosis_data import write_diagnosis_run
     from core.diagnosis import write_diagnosis
 
     write_diagnosis(diag, out)
     summary = diag.to_json()
     summary["plot"] = "residual_maps.png"
-    effects = (summary.get("extended") or {}).get("effects") or []
-    if effects:
-        if progress is not None:
-            progress(0.99, "corrected meshes (the extended model) for the viewer")
-        ym = summary.get("youngs_modulus") or {}
-        E = ym.get("value") or ym.get("replay_grid_value_used") or 5000.0
-        summary["corrected_shown"] = _write_extended_run(prepared, tuple(diag.config.grid), float(E), effects,
-                                                         Path(out) / VIEWER_RUN)
-        summary["viewer"] = True
+    if progress is not None:
+        progress(0.99, "the diagnosis in 3D: base and extended models, each cause's change")
+    ym = summary.get("youngs_modulus") or {}
+    E = ym.get("value") or ym.get("replay_grid_value_used") or 5000.0
+    shown = write_diagnosis_run(prepared, summary, tuple(diag.config.grid), float(E), Path(out) / VIEWER_RUN)
+    summary["corrected_shown"] = shown["corrected_shown"]
+    summary["diagnosis_layers"] = shown["layers"]
+    summary["viewer"] = True
     return summary
-
-
-def _write_extended_run(prepared, grid, youngs: float, effects: list[dict], folder) -> dict[str, str]:
-    """Replay the test sequences with the base model (the raw FEM layer) and with the
-    model extended by the diagnosed effects (the corrected mesh). Returns {sequence: "extended"}."""
-    from dataclasses import replace
-
-    import numpy as np
-
-    from app.viewer.data import vertex_errors, write_viewer_arrays
-    from core.simulation import effect_from_dict
-    from core.simulation.replay import ReplayConfig, replay, write_replay
-    tests = tuple(n for n, s in prepared.sequences.items() if s.role == "test") or tuple(prepared.sequences)
-    base = ReplayConfig(youngs_modulus=youngs, grid=grid, sequences=tests)
-    result = replay(prepared.path, base, prepared=prepared)
-    write_replay(result, folder)
-    write_viewer_arrays(prepared, result, folder)
-    extended = replay(prepared.path, replace(base, effects=tuple(effect_from_dict(dict(e)) for e in effects)), prepared=prepared)
-    (folder / "corrected").mkdir(exist_ok=True)
-    for name in tests:
-        positions = extended.sequences[name].simulation.positions
-        np.savez_compressed(folder / "corrected" / f"{name}.npz", positions=positions,
-                            vertex_error=vertex_errors(positions, grid, prepared.sequences[name].clouds, base.supersample),
-                            mode=np.str_("extended"))
-    return {name: "extended" for name in tests}
 
 
 def _prepare_learning(p: _LearningParams, ctx: JobContext, hi: float, youngs: float = 5000.0):
