@@ -153,6 +153,7 @@ async function loadJobs() {
     const actions = [
       active ? `<button class="cancel-btn" data-id="${j.id}">cancel</button>` : "",
       j.status === "done" && (j.result || {}).viewer ? `<button class="view-btn" data-id="${j.id}">view</button>` : "",
+      j.status === "done" && (j.result || {}).plan_view ? `<button class="plan-btn" data-id="${j.id}">view</button>` : "",
       exportLinks(j),
     ].join(" ");
     return `<tr data-job-id="${j.id}" data-status="${j.status}">
@@ -163,6 +164,7 @@ async function loadJobs() {
   }).join("");
   body.querySelectorAll(".cancel-btn").forEach((b) => b.onclick = () => api("POST", `/api/jobs/${b.dataset.id}/cancel`).then(loadJobs).catch((e) => alert(e.message)));
   body.querySelectorAll(".view-btn").forEach((b) => b.onclick = () => showInViewer(+b.dataset.id));
+  body.querySelectorAll(".plan-btn").forEach((b) => b.onclick = () => showPlanInViewer(+b.dataset.id));
   body.querySelectorAll(".job-link").forEach((a) => a.onclick = (ev) => { ev.preventDefault(); setFollow(false); showResult(+a.dataset.id); });
   if (followLatest) {
     const latest = jobs.filter((j) => FINAL.has(j.status) && j.finished_at)
@@ -223,6 +225,8 @@ async function showResult(id) {
   } else if (j.type === "diagnose" && j.status === "done") {
     out.push(diagnosisSummary(r, id));
     if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the diagnosis in 3D</button> <span class="muted">(the viewer's Diagnosis tab: residuals, ${(r.extended || {}).kinds && r.extended.kinds.length ? "each cause's change and geometry, " : ""}the answer per kind, the largest-error frames)</span>`);
+  } else if (j.type === "plan" && j.status === "done") {
+    out.push(planSummary(r, id));
   } else if (j.type === "generate" && j.status === "done") {
     out.push(`<p>new session ${r.session_id}: ${esc(r.session)}</p>`);
   }
@@ -330,6 +334,21 @@ const DIAGNOSIS_FIGURES = [
   ["evidence.png", "evidence per candidate effect (validation chi-square drop)"],
 ];
 
+function planSummary(r, id) {
+  // the planner's description, what it would show, the path in 3D and its kinematics.csv
+  const rows = Object.entries(r.predicted_min_size || {}).map(([k, v]) => {
+    const now = (r.current_min_size || {})[k];
+    return `<tr><td>${esc(k)}</td><td>${now == null ? "cannot tell" : Number(now).toPrecision(3)}</td><td>${v == null ? "cannot tell" : Number(v).toPrecision(3)}</td></tr>`;
+  }).join("");
+  const targets = Object.entries(r.targets || {}).map(([k, why]) => `${esc(k)} (${esc(why)})`).join("; ") || "a general protocol";
+  return `<p id="plan-summary">Plan for ${targets}: ${Number(r.duration_s).toFixed(1)} s of probing${r.record_force ? ", <b>record the probe force</b>" : ""}.</p>
+    <ol id="plan-description">${(r.description || []).map((l) => `<li>${esc(l)}</li>`).join("")}</ol>
+    <table id="plan-table"><thead><tr><th>kind</th><th>smallest size now</th><th>with this plan</th></tr></thead><tbody>${rows}</tbody></table>
+    <p><button class="plan-btn" onclick="showPlanInViewer(${id})">show the plan in 3D</button>
+    <a id="plan-kinematics" href="/api/jobs/${id}/artifacts/kinematics.csv" download="plan-${id}-kinematics.csv">download kinematics.csv</a>
+    <span class="muted">(robot frame, the session's format; <code>tissuetwin generate --plan</code> records it in the virtual lab)</span></p>`;
+}
+
 function diagnosisSummary(r, id) {
   const causes = r.causes || [];
   const ext = r.extended || {};
@@ -381,6 +400,14 @@ async function showInViewer(id) {
   try {
     const st = await api("POST", "/api/viewer/show", { job_id: id, tab: viewerTab });
     $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames, layers ${(st.layers || []).join(", ")} (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
+    $("#viewer").scrollIntoView();
+  } catch (e) { $("#viewer-status").textContent = e.message; }
+}
+
+async function showPlanInViewer(id) {
+  try {
+    const st = await api("POST", "/api/viewer/plan", { job_id: id, tab: viewerTab });
+    $("#viewer-status").textContent = `plan of job ${id} over the phantom (mode ${st.mode}): open the viewer's "Plan" tab for its description`;
     $("#viewer").scrollIntoView();
   } catch (e) { $("#viewer-status").textContent = e.message; }
 }

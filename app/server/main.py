@@ -51,6 +51,7 @@ def _viewer_callbacks(factory):
     run folders, ICP through the calibration service."""
     from app.server.services import calibration as cal
     from app.viewer.data import load_run, run_label
+    from app.viewer.plan_data import load_plan_view
     from app.viewer.scene import ViewerCallbacks
 
     def runs():
@@ -72,6 +73,13 @@ def _viewer_callbacks(factory):
                 raise KeyError(f"no job {run_id}")
             return load_run(viewer_folder(j), label=f"job {j.id}")
 
+    def load_plan(job_id: int) -> dict:
+        with factory() as db:
+            j = db.get(dbm.JobRecord, job_id)
+            if j is None or j.type != "plan" or j.status != dbm.DONE:
+                raise KeyError(f"no finished plan job {job_id}")
+            return load_plan_view(j.artifact_dir)
+
     def sessions():
         with factory() as db:
             return [(s.id, s.name) for s in db.scalars(select(dbm.SessionRecord).order_by(dbm.SessionRecord.id))]
@@ -88,6 +96,7 @@ def _viewer_callbacks(factory):
         icp_inputs=lambda sid: cal.reference_and_surface(path_of(sid)),
         icp_preview=lambda sid, pc, pp: cal.preview(path_of(sid), pc, pp),
         icp_accept=lambda sid, pc, pp: cal.accept(path_of(sid), pc, pp),
+        load_plan=load_plan,
     )
 
 

@@ -70,6 +70,8 @@ class ViewerCallbacks:
         icp_preview: ``(session_id, points_camera (K, 3), points_phantom (K, 3)) -> dict``
             with ``T_init``, ``T_phantom_camera``, ``rms_init``, ``rms``, ``fitness``.
         icp_accept: same arguments; saves the calibration; returns the stored dict.
+        load_plan: ``(job_id) -> dict`` a plan job's ``plan_view.json``
+            (:mod:`app.viewer.plan_data`), or None (no plans).
     """
 
     runs: Callable[[], list[tuple[int, str]]]
@@ -78,6 +80,7 @@ class ViewerCallbacks:
     icp_inputs: Callable[[int], tuple[np.ndarray, np.ndarray, np.ndarray]]
     icp_preview: Callable[[int, np.ndarray, np.ndarray], dict]
     icp_accept: Callable[[int, np.ndarray, np.ndarray], dict]
+    load_plan: Callable[[int], dict] | None = None
 
 
 class SequenceView:

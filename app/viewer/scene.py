@@ -19,7 +19,8 @@ loaded once; moving the slider swaps buffers (mesh GLBs are encoded once per fra
 cached).
 
 Diagnosis tab (a diagnose run's residuals, each claimed cause's change and geometry, the
-answer per kind, the largest-error frames): :mod:`app.viewer.diagnosis_panel`. ICP tab:
+answer per kind, the largest-error frames): :mod:`app.viewer.diagnosis_panel`. Plan tab
+(a plan job's probe path over the phantom): :mod:`app.viewer.plan_panel`. ICP tab:
 :mod:`app.viewer.icp_panel`. Shared buffers and colour maps: :mod:`app.viewer.buffers`.
 """
 
@@ -37,13 +38,14 @@ from app.viewer.buffers import SequenceView, SharedRuns, ViewerCallbacks, colorb
 from app.viewer.data import RunArrays, SequenceArrays
 from app.viewer.diagnosis_panel import DiagnosisPanel
 from app.viewer.icp_panel import IcpPanel
+from app.viewer.plan_panel import PlanPanel
 
 __all__ = ["ViewerCallbacks", "WorkbenchViewer", "TabView", "error_colors", "colorbar"]
 
 log = logging.getLogger(__name__)
 
 
-class TabView(IcpPanel, DiagnosisPanel):
+class TabView(IcpPanel, DiagnosisPanel, PlanPanel):
     """One browser tab (one viser client): its own GUI, scene nodes, camera and selection
     (run, sequence, frame, playback, layers, ICP picks), built with ``client.gui`` and
     ``client.scene`` when the tab connects. Choices made in one tab never change another."""
@@ -70,10 +72,13 @@ class TabView(IcpPanel, DiagnosisPanel):
         scene = client.scene
         self._replay_root = scene.add_frame("/replay", show_axes=False)
         self._icp_root = scene.add_frame("/icp", show_axes=False, visible=False)
+        self._plan_root = scene.add_frame("/plan", show_axes=False, visible=False)
         tabs = client.gui.add_tab_group()
-        replay_tab, diagnosis_tab, icp_tab = tabs.add_tab("Replay"), tabs.add_tab("Diagnosis"), tabs.add_tab("ICP init")
+        replay_tab, diagnosis_tab = tabs.add_tab("Replay"), tabs.add_tab("Diagnosis")
+        plan_tab, icp_tab = tabs.add_tab("Plan"), tabs.add_tab("ICP init")
         self._populate_diagnosis(diagnosis_tab)
         self._populate_replay(replay_tab)
+        self._populate_plan(plan_tab)
         self._populate_icp(icp_tab)
         scene.on_click()(self._on_click)
 
@@ -265,6 +270,7 @@ class TabView(IcpPanel, DiagnosisPanel):
         self.mode = mode
         self._replay_root.visible = mode == "replay"
         self._icp_root.visible = mode == "icp"
+        self._plan_root.visible = mode == "plan"
         if mode == "replay" and self.view is not None:
             self._frame(self.view.seq.positions[self.frame], (0.0, -0.16, 0.12))
 
@@ -290,6 +296,7 @@ class TabView(IcpPanel, DiagnosisPanel):
                 "camera": cam,
                 "icp": dict(self.icp),
                 "diagnosis": self.diagnosis_state(),
+                "plan": self.plan_state(),
             }
 
 
@@ -426,6 +433,18 @@ class WorkbenchViewer:
         (None: every open tab)."""
         self.shared.icp_inputs(session_id)  # raises here, once, if the session cannot be read
         self._each_tab(lambda t: t.start_icp(session_id), tab)
+
+    def show_plan(self, job_id: int, tab: str | None = None) -> None:
+        """Draw plan job ``job_id`` (its ``plan_view.json``, read through the callbacks) in
+        the tabs of ``tab`` (None: every open tab).
+
+        Raises:
+            RuntimeError: the server gave no ``load_plan`` callback. Whatever it raises.
+        """
+        if self.cb.load_plan is None:
+            raise RuntimeError("this viewer cannot load plans (no load_plan callback)")
+        view = self.cb.load_plan(job_id)
+        self._each_tab(lambda t: t.show_plan(job_id, view), tab)
 
     def _each_tab(self, action: Callable[[TabView], None], token: str | None = None) -> None:
         """Apply ``action`` to every open tab of ``token`` (None: all); a tab closing

@@ -157,6 +157,11 @@ class ViewerFrame(_Request):
     tab: ViewerTab = None
 
 
+class ViewerPlan(_Request):
+    job_id: int
+    tab: ViewerTab = None
+
+
 class ViewerIcp(_Request):
     session_id: int
     tab: ViewerTab = None

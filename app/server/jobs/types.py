@@ -110,6 +110,30 @@ class DiagnoseParams(_Strict):
         "auto", description="probe force in the evidence, E fitted jointly with each cause (auto: when every sequence has force columns)")
 
 
+class PlanParams(_Strict):
+    """The palpation that would make the kinds a diagnosis could not tell decidable
+    (``core.diagnosis.planner``): a probe path, its description and its kinematics.csv."""
+
+    session_id: int = Field(description="id of a registered session")
+    diagnose_job_id: int | None = Field(None, ge=1, description="a finished diagnose job of this session whose "
+                                        "answers the plan starts from (empty: diagnose first, minutes)")
+    kinds: list[str] | None = Field(None, max_length=8, description="kinds to make decidable (empty: every kind "
+                                    "that could not be told or was confounded)")
+    max_depth: float = Field(0.008, gt=0.0, le=0.02, description="deepest indentation, m")
+    speed: float = Field(0.010, gt=0.0, le=0.05, description="fastest probe speed in contact, m/s")
+    duration: float = Field(20.0, gt=1.0, le=600.0, description="most seconds of probing")
+
+    @field_validator("kinds")
+    @classmethod
+    def _known(cls, v):
+        from core.simulation.effects import EFFECT_KINDS
+
+        bad = [k for k in v or [] if k not in EFFECT_KINDS]
+        if bad:
+            raise ValueError(f"unknown effect kind(s) {bad}; expected some of {sorted(EFFECT_KINDS)}")
+        return v
+
+
 class _LearningParams(_ModelParams):
     """How the correction network is shaped and trained (``core.learning.NetworkConfig`` /
     ``TrainConfig``; defaults are the paper's and the CLI's)."""
@@ -280,6 +304,53 @@ def write_diagnose_artifacts(diag, prepared, out, progress=None) -> dict:
     return summary
 
 
+def _diagnosis_of(job_id: int, ctx: JobContext) -> dict:
+    """The diagnosis.json of diagnose job ``job_id`` (its folder beside this job's)."""
+    from core.errors import TissueTwinError
+
+    path = ctx.artifact_dir.parent / str(job_id) / "diagnosis.json"
+    try:
+        data = json.loads(path.read_text())
+        if not isinstance(data.get("detectability"), dict):
+            raise ValueError("it has no detectability")
+    except (OSError, ValueError) as exc:
+        raise TissueTwinError(f"job {job_id}: no usable diagnosis ({path}: {exc}); give a finished diagnose job") from exc
+    if Path(data.get("session", "")).resolve() != Path(ctx.session_path).resolve():
+        raise TissueTwinError(f"job {job_id} diagnosed {data.get('session')}, not this plan's session {ctx.session_path}")
+    return data
+
+
+def run_plan(p: PlanParams, ctx: JobContext) -> dict:
+    from app.viewer.plan_data import write_plan_view
+    from core.diagnosis import DiagnosisConfig, diagnose_prepared
+    from core.diagnosis.planner import PlanLimits, plan_experiment, write_plan
+    from core.preparation import prepare_session
+    from core.simulation.replay import ReplayConfig
+
+    config = DiagnosisConfig()
+    prepared = prepare_session(ctx.session_path, ReplayConfig(grid=config.grid), picked=ctx.picked, callback=ctx.scaled(0.0, 0.05))
+    limits = PlanLimits(max_depth=p.max_depth, speed=p.speed, duration=p.duration)
+    with ctx.executor() as ex:
+        if p.diagnose_job_id is not None:
+            data = _diagnosis_of(p.diagnose_job_id, ctx)
+            detect = {k: {**d, "answer": (data.get("answers") or {}).get(k, d.get("answer"))}
+                      for k, d in data["detectability"].items()}
+            fixed = list((data.get("extended") or {}).get("effects") or [])
+            E = (data.get("youngs_modulus") or {}).get("replay_grid_value_used") or config.youngs_modulus
+        else:
+            diag = diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.05, 0.6))
+            detect, fixed = diag.detectability, list(diag.extended_effects)
+            E = diag.youngs.get("replay_grid_value_used") or config.youngs_modulus
+        plan = plan_experiment(prepared, detect, config, fixed=fixed, youngs_modulus=E, kinds=p.kinds, limits=limits,
+                               executor=ex, callback=ctx.scaled(0.6, 0.98))
+    out = write_plan(plan, ctx.artifact_dir)
+    write_plan_view(plan, prepared.size, prepared.probe_radius, out)
+    summary = plan.to_json()
+    summary.pop("path_phantom", None)  # in plan.json and plan_view.json; the job row stays small
+    summary["plan_view"] = True
+    return summary
+
+
 def _prepare_learning(p: _LearningParams, ctx: JobContext, hi: float, youngs: float = 5000.0):
     """Read and prepare the session; the learned correction needs train, validation and test sequences."""
     from core.io import read_session
@@ -381,13 +452,14 @@ def run_evaluate(p: EvaluateParams, ctx: JobContext) -> dict:
 
 
 def default_registry() -> Registry:
-    """The job types of this release: generate, replay, sweep, fit, diagnose, train, evaluate."""
+    """The job types of this release: generate, replay, sweep, fit, diagnose, plan, train, evaluate."""
     return Registry([
         JobType("generate", GenerateParams, run_generate, "synthetic session from the virtual lab"),
         JobType("replay", ReplayParams, run_replay, "replay a session, paper's error, 3D view"),
         JobType("sweep", SweepParams, run_sweep, "grid search over Young's modulus (Tables 1-2)"),
         JobType("fit", FitParams, run_fit, "fit Young's modulus with a 95 % interval"),
         JobType("diagnose", DiagnoseParams, run_diagnose, "name what the simulation lacks and what fixing it gains"),
+        JobType("plan", PlanParams, run_plan, "the palpation that would tell what the diagnosis could not"),
         JobType("train", TrainParams, run_train, "train the 2D/3D correction network and test it (Sec. 3.3)"),
         JobType("evaluate", EvaluateParams, run_evaluate, "Table 3: both networks at the identified E, too stiff, 10 Pa"),
     ])

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter
 
 from app.server.api.deps import DB, ViewerDep
-from app.server.api.schemas import ViewerFrame, ViewerIcp, ViewerShow, errors
+from app.server.api.schemas import ViewerFrame, ViewerIcp, ViewerPlan, ViewerShow, errors
 from app.server.errors import Conflict, Invalid, NotFound
 from app.server.services import jobs as job_svc
 from app.server.services import sessions as session_svc
@@ -40,6 +40,18 @@ def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
         viewer.show_run(job.id, body.sequence, tab=body.tab)
     except KeyError as exc:  # the run has no such sequence
         raise NotFound(str(exc.args[0]) if exc.args else f"job {job.id} has no sequence {body.sequence!r}") from exc
+    return viewer.state(body.tab)
+
+
+@router.post("/plan", responses=errors(404, 409))
+def show_plan(body: ViewerPlan, db: DB, viewer: ViewerDep):
+    """Draw a finished plan job's probe path over the phantom, in the viewer tab of ``tab``
+    or, without it, in every tab (404: no such job; 422: not a finished plan job)."""
+    viewer = _need(viewer)
+    job = job_svc.get_job(db, body.job_id)
+    if job.type != "plan" or job.status != "done":
+        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer draws finished plan jobs")
+    viewer.show_plan(job.id, tab=body.tab)
     return viewer.state(body.tab)
 
 
