@@ -151,31 +151,57 @@ def cmd_replay(args) -> int:
     return 0
 
 
+def _demo_session_current(session: Path) -> bool:
+    """Whether ``session`` is the demo session this release makes: its truth.json hides
+    :data:`core.lab.DEMO_EFFECTS` and it has force columns (an older demo held no effect)."""
+    from core.lab import DEMO_EFFECTS, complete_effects
+
+    try:
+        truth = json.loads((session / "truth.json").read_text())
+        header = next((session / "sequences").glob("*/kinematics.csv")).open().readline()
+    except (OSError, ValueError, StopIteration):
+        return False
+    return truth.get("effects") == complete_effects(DEMO_EFFECTS) and "fx" in header.split(",")
+
+
 def cmd_demo(args) -> int:
-    """Generate the demo session if absent, replay it, and replay the shared sample session;
-    then (unless ``--no-serve``) open the workbench on them, the demo replay run as a job
-    first, then the demo's analyses (``app.cli_serve.demo_analyses``: sweep, fit, diagnose,
-    train) one after another."""
+    """Generate the demo session if absent (or made by an older release), replay the shared
+    sample session; then, unless ``--no-serve``, open the workbench on them: the demo
+    session's replay runs as the workbench's first job (the session is replayed and
+    cleaned once), then the demo's analyses (``app.cli_serve.demo_analyses``: sweep,
+    train, fit, diagnose) one after another. With ``--no-serve`` the demo session is
+    replayed here instead.
+
+    The demo session (``demo`` preset, seed 0, force columns) hides
+    :data:`core.lab.DEMO_EFFECTS`: gravity and a robot calibration offset, which the
+    demo's diagnosis names."""
     from core.io import read_session
-    from core.lab import generate_session
+    from core.lab import DEMO_EFFECTS, generate_session
 
     data = Path(args.data)
     session = data / "demo-session"
-    if not (session / "session.json").exists():
-        with _progress("generating the demo session (once)") as cb:
-            generate_session(session, preset="demo", seed=0, callback=cb, overwrite=True)
+    if not (session / "session.json").exists() or not _demo_session_current(session):
+        what = "regenerating the demo session (it was made without the demo's hidden effects)" \
+            if (session / "session.json").exists() else "generating the demo session (once)"
+        with _progress(what) as cb:
+            generate_session(session, preset="demo", seed=0, effects=list(DEMO_EFFECTS), with_force=True,
+                             callback=cb, overwrite=True)
     else:
         read_session(session)  # validates what is there
     config = _replay_config(args)
-    _run_replay(session, data / "runs" / "demo-replay", config, f"demo session (E = {config.youngs_modulus:g} Pa)")
     sample = Path(args.sample) if args.sample else None
     has_sample = sample is not None and (sample / "session.json").exists()
+    if args.no_serve:
+        _run_replay(session, data / "runs" / "demo-replay", config, f"demo session (E = {config.youngs_modulus:g} Pa)")
     if has_sample:
         _run_replay(sample, data / "runs" / "sample-replay", config, f"{sample} (E = {config.youngs_modulus:g} Pa)")
     if args.no_serve:
         return 0
     from app.cli_serve import serve_demo
 
+    print("the demo session hides " + " and ".join(e["kind"] for e in DEMO_EFFECTS)
+          + " (force columns recorded); the workbench replays it as its first job, then sweeps, trains, fits and "
+            "diagnoses it", flush=True)
     params = {"youngs_modulus": args.youngs, "poisson_ratio": args.poisson, "grid": list(args.grid),
               "effects": _parse_effects(args.effects), "sequences": args.sequences or None}
     sessions = [(session, "demo-session")] + ([(sample, "sample-session")] if has_sample else [])
@@ -327,8 +353,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_execution_options(p)
     p.set_defaults(func=cmd_fit)
 
-    p = sub.add_parser("demo", help="generate (once) and replay the demo session and the shared sample session, "
-                                    "then open the workbench and run the analyses on the demo session")
+    p = sub.add_parser("demo", help="generate (once) the demo session (hidden gravity and robot offset, with force), "
+                                    "replay the shared sample session, then open the workbench: it replays the demo "
+                                    "session and runs the analyses, the diagnosis last")
     p.add_argument("--data", default=str(DEFAULT_DATA), help="data directory (default ./data)")
     p.add_argument("--sample", default=str(Path("..") / "shared" / "sample-session"), help="a session from another tool to replay too")
     p.add_argument("--no-serve", action="store_true", help="stop after the replays instead of opening the workbench")

@@ -89,7 +89,9 @@ def _ctrl_c(proc) -> None:
 @pytest.mark.slow
 def test_readme_main_command_runs(tmp_path):
     """Runs the README's main command verbatim from the repository root, as a user would:
-    the demo replays, then the workbench opens on the demo session with its replay job run,
+    the demo session (with its hidden effects and force columns) is made, the sample session
+    replays, then the workbench opens on the demo session with its replay job run (the one
+    replay of it),
     and queues the demo's analyses after it. The test waits until the dashboard answers on
     loopback, that job is done and the first analysis (the sweep) is queued or running
     (REST), then presses Ctrl-C (SIGINT to the command and its workers, as a terminal does)
@@ -106,7 +108,7 @@ def test_readme_main_command_runs(tmp_path):
         proc = subprocess.Popen(main_cmd, shell=True, cwd=ROOT, env=env, stdout=out, stderr=subprocess.STDOUT,
                                 text=True, start_new_session=True)
     try:
-        # setup, the demo session (generated once), two replays, then the server; the timeouts only guard a hang
+        # setup, the demo session (generated once), the sample replay, then the server; the timeouts only guard a hang
         _wait_for("the dashboard", lambda: _get(f"{url}/api/health"), proc, log, timeout=1800)
         page = httpx_get_text(f"{url}/")
         assert "Tissue Twin workbench" in page
@@ -119,10 +121,15 @@ def test_readme_main_command_runs(tmp_path):
                         proc, log, timeout=600)[0]
         assert job["status"] == "done", job
         detail = _get(f"{url}/api/jobs/{job['id']}")
-        cli = json.loads((data / "runs" / "demo-replay" / "replay.json").read_text())
-        assert set(detail["result"]["sequences"]) == set(cli["sequences"])
-        for name, seq in cli["sequences"].items():  # the job and the CLI replay the same thing
-            assert detail["result"]["sequences"][name]["mean_error"] == pytest.approx(seq["mean_error"], rel=1e-3)
+        meta = json.loads((data / "demo-session" / "session.json").read_text())
+        assert set(detail["result"]["sequences"]) == {sq["name"] for sq in meta["sequences"]}
+        assert not (data / "runs" / "demo-replay").exists()  # the demo session is replayed once: by the job
+        # the demo session hides what the README says the diagnosis will name, with force columns
+        from core.lab import DEMO_EFFECTS, complete_effects
+
+        truth = json.loads((data / "demo-session" / "truth.json").read_text())
+        assert truth["effects"] == complete_effects(DEMO_EFFECTS)
+        assert "fx" in next((data / "demo-session" / "sequences").glob("*/kinematics.csv")).read_text().splitlines()[0]
         if (ROOT.parent / "shared" / "sample-session" / "session.json").exists():
             assert (data / "runs" / "sample-replay" / "replay.json").exists()
             assert any(s["name"] == "sample-session" for s in _get(f"{url}/api/sessions"))

@@ -120,12 +120,16 @@ def _normal_change(base: np.ndarray, other: np.ndarray, faces: np.ndarray) -> np
     return out
 
 
-def cause_geometry(effect: dict, size) -> dict | None:
+def cause_geometry(effect: dict, size, youngs: dict | None = None) -> dict | None:
     """How the viewer draws a claimed cause, or None for kinds without a shape.
 
     Args:
         effect: a SESSION_FORMAT effect dict (``kind`` and its parameters, SI).
         size: (3,) the phantom's size, m (the gravity arrow starts above its top centre).
+        youngs: the diagnosis's ``youngs_modulus`` (``value``, ``replay_grid_value_used``),
+            or None. The sag is set by rho g / E, so a gravity fitted on the replay grid at
+            its E reads, at the mesh-corrected E, as g x value / replay_grid_value_used; the
+            label gives both.
 
     Returns:
         {"kind", "shape", ...}: ``"sphere"`` (``center``, ``radius``: an inclusion),
@@ -141,9 +145,13 @@ def cause_geometry(effect: dict, size) -> dict | None:
                 "label": f"inclusion: radius {effect['radius'] * 1e3:.1f} mm, {effect['stiffness_ratio']:.2g}x stiffer"}
     if kind == "gravity":
         g = np.asarray(effect["g"], float)
+        label = f"gravity |g| {np.linalg.norm(g):.2f} m/s^2 (arrow 15 mm per 9.81)"
+        E, E_grid = (youngs or {}).get("value"), (youngs or {}).get("replay_grid_value_used")
+        if E and E_grid and abs(E / E_grid - 1.0) > 0.01:
+            label += (f" at the replay grid's E {E_grid:.0f} Pa; {np.linalg.norm(g) * E / E_grid:.2f} m/s^2 "
+                      f"at the mesh-corrected E {E:.0f} Pa")
         return {"kind": kind, "shape": "vector", "origin": [sx / 2, sy / 2, sz + 0.02],
-                "vector": (g / 9.80665 * 0.015).tolist(),
-                "label": f"gravity |g| {np.linalg.norm(g):.2f} m/s^2 (arrow 15 mm per 9.81)"}
+                "vector": (g / 9.80665 * 0.015).tolist(), "label": label}
     if kind == "kinematic_offset":
         o = np.asarray(effect["offset"], float)
         return {"kind": kind, "shape": "probe_vector", "vector": (5.0 * o).tolist(),
@@ -222,7 +230,8 @@ def write_diagnosis_run(prepared, summary: dict, grid, youngs: float, folder) ->
     view = {
         "answers": _answers(summary),
         "claimed": [{"kind": e["kind"], "parameters": {k: v for k, v in e.items() if k != "kind"}} for e in effects],
-        "geometry": [g for e in effects if (g := cause_geometry(e, size if size is not None else np.ones(3)))],
+        "geometry": [g for e in effects
+                     if (g := cause_geometry(e, size if size is not None else np.ones(3), summary.get("youngs_modulus")))],
         "youngs_modulus": float(youngs),
         "test_error": {"base": (summary.get("baseline") or {}).get("test_error"), "extended": ext_summary.get("test_error")},
         "layers": layers,

@@ -17,6 +17,7 @@ Modules: :mod:`core.lab.probing` (probe trajectories, random or given), :mod:`co
 
 from core.lab.camera import DepthCamera, DepthNoise, Instrument, Intrinsics
 from core.lab.generate import (
+    DEMO_EFFECTS,
     GENERATOR_NAME,
     GENERATOR_VERSION,
     INPUT_EFFECTS,
@@ -38,6 +39,7 @@ __all__ = [
     "SCENARIO_KINDS",
     "hidden_effects",
     "scenario",
+    "DEMO_EFFECTS",
     "GENERATOR_NAME",
     "GENERATOR_VERSION",
     "INPUT_EFFECTS",

@@ -102,3 +102,30 @@ def listening_addresses(port: int) -> set[str]:
             if int(hex_port, 16) == port and fields[3] == "0A":  # TCP_LISTEN
                 found.add(addr)
     return found
+
+
+def store_finished_jobs(data: Path, session: Path, name: str, jobs) -> None:
+    """Store in ``data``'s SQLite database the session ``session`` (id 1, named ``name``) and
+    finished jobs of it, as the runner stores a finished job, so a test serves files made
+    by the core library without running Dask jobs.
+
+    Args:
+        jobs: ``(id, type, params model (its session_id is 1), result dict, folder)`` each.
+    """
+    from app.server import db as dbm
+
+    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
+    try:
+        factory = dbm.make_sessionmaker(engine)
+        with factory.begin() as db:
+            rec = dbm.SessionRecord(name=name, path=str(session.resolve()), source="registered")
+            db.add(rec)
+            db.flush()
+            now = dbm.utcnow()
+            for job_id, job_type, params, result, folder in jobs:
+                db.add(dbm.JobRecord(id=job_id, type=job_type, params=params.model_dump(mode="json"), session_id=rec.id,
+                                     status=dbm.DONE, progress=1.0, message="done", result=result,
+                                     artifact_dir=str(Path(folder).resolve()), created_at=now, started_at=now,
+                                     finished_at=now, log="made by the test from the core library\n"))
+    finally:
+        engine.dispose()

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.app._server import store_finished_jobs
+
 CHROMIUM = Path("/usr/bin/chromium")
 """Debian's chromium (scripts/setup.sh installs it); playwright drives it instead of its own download."""
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--disable-quic",
@@ -35,7 +37,6 @@ def replayed(small_session, tmp_path_factory):
     """A data directory whose database holds the `small` session and its finished replay
     job 1 (seq01), written as the replay job writes it (``write_replay`` and the viewer's
     arrays) and stored as the runner stores a finished job: the browser tests need no Dask job."""
-    from app.server import db as dbm
     from app.server.jobs.types import ReplayParams
     from app.viewer.data import write_viewer_arrays
     from core.preparation import prepare_session
@@ -49,18 +50,6 @@ def replayed(small_session, tmp_path_factory):
     write_replay(result, folder)
     write_viewer_arrays(prepared, result, folder)
     summary = {**result.to_json(), "viewer": True}
-    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
-    try:
-        factory = dbm.make_sessionmaker(engine)
-        with factory.begin() as db:
-            rec = dbm.SessionRecord(name="small", path=str(small_session.resolve()), source="registered")
-            db.add(rec)
-            db.flush()
-            now = dbm.utcnow()
-            params = ReplayParams(session_id=rec.id, sequences=["seq01"]).model_dump(mode="json")
-            db.add(dbm.JobRecord(id=1, type="replay", params=params, session_id=rec.id, status=dbm.DONE, progress=1.0,
-                                 message="done", result=summary, artifact_dir=str(folder), created_at=now,
-                                 started_at=now, finished_at=now, log="made by the test from core's replay\n"))
-    finally:
-        engine.dispose()
+    store_finished_jobs(data, small_session, "small",
+                        [(1, "replay", ReplayParams(session_id=1, sequences=["seq01"]), summary, folder)])
     return data

@@ -23,7 +23,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.app._server import Server
+from tests.app._server import Server, store_finished_jobs
 from tests.app.conftest import needs_chromium
 from tests.app.test_browser import _canvas, _state, _until
 
@@ -42,7 +42,6 @@ def diagnosed(tmp_path_factory):
     from core.lab.generate import PRESETS
     from core.preparation import prepare_session
     from core.simulation.replay import ReplayConfig
-    from app.server import db as dbm
     from app.server.jobs.types import DiagnoseParams, write_diagnose_artifacts
 
     root = tmp_path_factory.mktemp("diagnosed")
@@ -54,20 +53,8 @@ def diagnosed(tmp_path_factory):
     data = root / "data"
     folder = (data / "jobs" / "1").resolve()
     summary = write_diagnose_artifacts(diag, prepared, folder)
-    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
-    try:
-        factory = dbm.make_sessionmaker(engine)
-        with factory.begin() as db:
-            rec = dbm.SessionRecord(name="gravity", path=str(session.resolve()), source="registered")
-            db.add(rec)
-            db.flush()
-            now = dbm.utcnow()
-            params = DiagnoseParams(session_id=rec.id, fit_youngs=False).model_dump(mode="json")
-            db.add(dbm.JobRecord(id=1, type="diagnose", params=params, session_id=rec.id, status=dbm.DONE, progress=1.0,
-                                 message="done", result=summary, artifact_dir=str(folder), created_at=now,
-                                 started_at=now, finished_at=now, log="made by the test from core.diagnosis\n"))
-    finally:
-        engine.dispose()
+    store_finished_jobs(data, session, "gravity",
+                        [(1, "diagnose", DiagnoseParams(session_id=1, fit_youngs=False), summary, folder)])
     return data, summary
 
 

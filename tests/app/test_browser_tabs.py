@@ -12,6 +12,7 @@ import httpx
 import pytest
 
 from tests.app._server import Server
+from tests.app.test_browser import _until
 from tests.app.conftest import needs_chromium
 
 pytestmark = [pytest.mark.slow, needs_chromium]
@@ -19,16 +20,6 @@ pytestmark = [pytest.mark.slow, needs_chromium]
 
 def _tabs(url) -> list[dict]:
     return httpx.get(f"{url}/api/viewer").json().get("tabs", [])
-
-
-def _until(fn, what: str, timeout: float = 60.0):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = fn()
-        if value:
-            return value
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.2)
 
 
 def _token(page) -> str:

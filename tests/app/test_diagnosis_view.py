@@ -50,7 +50,10 @@ def test_cause_geometry_of_every_kind():
                       "kinematic_offset": "probe_vector"}
     g = cause_geometry({"kind": "gravity", "g": [0.0, 0.0, -9.80665]}, SIZE)
     np.testing.assert_allclose(g["vector"], [0.0, 0.0, -0.015])
-    assert g["origin"][2] > SIZE[2]
+    assert g["origin"][2] > SIZE[2] and g["label"] == "gravity |g| 9.81 m/s^2 (arrow 15 mm per 9.81)"
+    g = cause_geometry({"kind": "gravity", "g": [0.0, 0.0, -16.0]}, SIZE, {"value": 5000.0, "replay_grid_value_used": 8000.0})
+    assert g["label"].endswith("16.00 m/s^2 (arrow 15 mm per 9.81) at the replay grid's E 8000 Pa; "
+                               "10.00 m/s^2 at the mesh-corrected E 5000 Pa")
     k = cause_geometry({"kind": "kinematic_offset", "offset": [0.001, 0.0, -0.002]}, SIZE)
     np.testing.assert_allclose(k["vector"], [0.005, 0.0, -0.01])
 

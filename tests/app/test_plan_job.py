@@ -16,7 +16,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.app._server import Server
+from tests.app._server import Server, store_finished_jobs
 from tests.app.conftest import needs_chromium
 
 
@@ -24,7 +24,6 @@ from tests.app.conftest import needs_chromium
 def planned(small_session, tmp_path_factory):
     """(data directory, plan summary): session 1, its diagnose job 1 (a diagnosis.json that
     could tell no kind) and the finished plan job 2 made from it."""
-    from app.server import db as dbm
     from app.server.jobs.context import JobContext, LocalChannel
     from app.server.jobs.types import DiagnoseParams, PlanParams, run_plan
     from core.simulation.effects import EFFECT_KINDS
@@ -40,23 +39,9 @@ def planned(small_session, tmp_path_factory):
     ctx = JobContext(job_id=2, artifact_dir=plan_dir, channel=LocalChannel(), session_path=small_session.resolve())
     plan_dir.mkdir(parents=True)
     summary = run_plan(params, ctx)
-    engine = dbm.make_engine(f"sqlite:///{(data / 'workbench.db').resolve()}")
-    try:
-        factory = dbm.make_sessionmaker(engine)
-        with factory.begin() as db:
-            rec = dbm.SessionRecord(name="small", path=str(small_session.resolve()), source="registered")
-            db.add(rec)
-            db.flush()
-            now = dbm.utcnow()
-            for job_id, jtype, p, result, folder in (
-                    (1, "diagnose", DiagnoseParams(session_id=rec.id), diagnosis, diag_dir),
-                    (2, "plan", params, summary, plan_dir)):
-                db.add(dbm.JobRecord(id=job_id, type=jtype, params=p.model_dump(mode="json"), session_id=rec.id,
-                                     status=dbm.DONE, progress=1.0, message="done", result=result,
-                                     artifact_dir=str(folder), created_at=now, started_at=now, finished_at=now,
-                                     log="made by the test\n"))
-    finally:
-        engine.dispose()
+    store_finished_jobs(data, small_session, "small", [
+        (1, "diagnose", DiagnoseParams(session_id=1), diagnosis, diag_dir),
+        (2, "plan", params, summary, plan_dir)])
     return data, summary
 
 
