@@ -97,10 +97,11 @@ def demo_analyses(replay_params: dict) -> list[tuple[str, dict]]:
     * fit: E with its 95 % interval, or the reason it cannot be identified (the defaults);
     * diagnose: what the base model lacks, with the E fit (the defaults).
 
-    Measured on the 2-core development machine while other work loaded it (load average
-    15-19): sweep 2.0 min, train 2.2 min, fit 3.7 min, diagnose 24 min (32 min from the
-    sweep's start to the last result; 23 CPU minutes, three quarters of them the
-    diagnosis).
+    Measured on the idle 2-core development machine with the demo session of
+    :data:`core.lab.DEMO_EFFECTS` (6 x 10 s, force): replay job 15 s, sweep 12 s, train 18 s,
+    fit 24 s, diagnose 311 s (it names gravity and the robot offset); 6.8 min from the
+    command to the diagnosis. (With the earlier 6 x 20 s demo session on a machine loaded
+    15-19: sweep 2.0 min, train 2.2, fit 3.7, diagnose 24.)
 
     The model options of the demo's replay (Poisson's ratio, grid, effects) carry over.
     """

@@ -97,12 +97,16 @@ class DiagnosisPanel:
         self.gui_answers.content = answers_markdown(self.run.diagnosis)
         self._update_legend()
 
+    def _remove_geometry(self) -> None:
+        """Remove the causes' geometry (before the probe it may hang from is removed)."""
+        for key in [k for k in self._handles if k.startswith("geometry:")]:
+            self._handles.pop(key).remove()
+
     def _build_diagnosis_nodes(self) -> None:
         """The claimed causes' geometry (under ``/replay/diagnosis`` and, for the probe's,
         under ``/replay/probe`` so it moves with it)."""
         scene = self.client.scene
-        for key in [k for k in self._handles if k.startswith("geometry:")]:
-            self._handles.pop(key).remove()
+        self._remove_geometry()
         for i, g in enumerate((self.run.diagnosis or {}).get("geometry") or []):
             shape, name = g["shape"], f"geometry:{i}"
             if shape == "sphere":
@@ -134,7 +138,8 @@ class DiagnosisPanel:
             self.set_colour(mode)
 
     def set_colour(self, mode: str) -> None:
-        """Colour the FEM layer by ``mode`` (one of the sequence's ``colour_modes()``).
+        """Colour the FEM layer by ``mode`` (one of the sequence's ``colour_modes()``); going
+        from per-vertex error to a signed layer hides the measured cloud, which would cover it.
 
         Raises:
             KeyError: the sequence shown has no such colour mode.
@@ -142,6 +147,9 @@ class DiagnosisPanel:
         with self._lock:
             if self.view is None or mode not in self.view.colour_modes():
                 raise KeyError(f"no colour mode {mode!r} here; have {self.view.colour_modes() if self.view else []}")
+            if self.colour == "error" and mode != "error" and self.gui_cloud.value:
+                self.gui_cloud.value = False  # the measured points would hide the surface's colours
+                self._apply_visibility()
             self.colour = mode
             if self.gui_colour.value != _mode_label(mode):
                 self._mute = True

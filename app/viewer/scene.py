@@ -170,6 +170,7 @@ class TabView(IcpPanel, DiagnosisPanel, PlanPanel):
     def _build_replay_nodes(self) -> None:
         scene = self.client.scene
         seq = self.view.seq
+        self._remove_geometry()
         for key in ("cloud", "fem", "corrected", "probe"):
             h = self._handles.pop(key, None)
             if h is not None:

@@ -192,6 +192,7 @@ def test_diagnosis_layers_in_3d_in_chromium(diagnosed, chromium, tmp_path):
                              ("change_gravity", "gravity: its change of the surface")):
             _pick(frame, "Surface colour", option)
             _until(lambda: _state(server.url)["diagnosis"]["colour"] == mode, f"colour mode {mode}")
+            assert not _state(server.url)["visible"]["cloud"]
             frame.get_by_text("mm (blue)", exact=False).first.wait_for(timeout=10_000)  # the signed legend
             time.sleep(1.0)
             shots_by[mode] = _grey(canvas.screenshot(path=str(shots / f"colour-{mode}.png")))
