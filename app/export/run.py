@@ -320,8 +320,12 @@ def _read_npz(f: Path, role: str, n_nodes: int) -> Trajectory:
 
 def _diagnosis_youngs(p: Path, data: dict, grid) -> tuple[float, str]:
     """E (Pa) of the calibrated model and where it came from: the value a fit reported on
-    this very grid (``grid_value`` or ``refined_value``) when there is one, else the
-    reported ``value``, else the one the extended model was evaluated with."""
+    this very grid (``grid_value`` or ``refined_value``) when there is one; on the
+    diagnosis's default grid (13x5x5), the E its claimed causes were fitted and evaluated
+    with (``replay_grid_value_used``: a gravity fitted there goes with that E, the sag being
+    set by rho g / E); else the reported ``value``, else that one."""
+    from core.diagnosis import DiagnosisConfig
+
     y = data.get("youngs_modulus")
     if not isinstance(y, dict):
         raise TissueTwinError(f"{p}: has no youngs_modulus object")
@@ -329,6 +333,9 @@ def _diagnosis_youngs(p: Path, data: dict, grid) -> tuple[float, str]:
         g = y.get(key)
         if isinstance(g, dict) and g.get("value") and tuple(g.get("grid") or ()) == tuple(grid):
             return float(g["value"]), f"diagnosis.json youngs_modulus.{key} (fitted on this grid)"
+    used = y.get("replay_grid_value_used")
+    if tuple(grid) == tuple(DiagnosisConfig().grid) and isinstance(used, (int, float)) and used > 0:
+        return float(used), "diagnosis.json youngs_modulus.replay_grid_value_used (its causes' E on this grid)"
     for key in ("value", "replay_grid_value_used"):
         if isinstance(y.get(key), (int, float)) and y[key] > 0:
             return float(y[key]), f"diagnosis.json youngs_modulus.{key}"

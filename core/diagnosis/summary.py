@@ -11,6 +11,7 @@ import numpy as np
 from core.diagnosis.evidence import Evidence, FieldRun
 from core.diagnosis.fields import FACES, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
+from core.identification.verdict import MAX_RATIO
 from core.lab.probing import penetration_depth
 from core.simulation.effects import FitSpace
 from core.preparation import PreparedSession
@@ -122,7 +123,9 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
     model-form range (``model_form`` of
     :func:`core.identification.model_form.youngs_model_form`: E refitted under other
     laws, Poisson's ratios and grids, each widened by the statistical interval);
-    identifiable when the interval spans less than a decade."""
+    identifiable by the fit's rule (:mod:`core.identification.verdict`): force data set a
+    scale, and the interval spans at most :data:`~core.identification.verdict.MAX_RATIO`
+    (3x). ``value`` stays the estimate either way (SESSION_FORMAT: it may be null)."""
     lg, se = float(fit.x[-1]), float(fit.se[-1])
     if not np.isfinite(se):
         return {"value": fit.youngs_modulus, "interval": None, "identifiable": False,
@@ -140,11 +143,19 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
         # preferred, the largest factor off any of them the smallest); the replay's E beside it
         out["model_value"] = fit.youngs_modulus
         out["value"] = float(np.sqrt(model_form["low"] * model_form["high"]))
-    ok = bool(hi / lo < 10.0)
+    # the fit's rule (core.identification.verdict): force sets a scale (structural), and the
+    # 95 % interval spans at most MAX_RATIO; here the interval also holds the model form
+    ratio = hi / lo
+    ok = bool(ratio <= MAX_RATIO)
+    holds = "statistical and model form" if model_form else "statistical"
     out.update({"interval": [lo, hi], "identifiable": ok,
-                "reason": ("force data set the scale of E; the interval holds the law, Poisson's ratio and grid "
-                           "variants of the model form" if model_form else "force data set the scale of E")
-                if ok else "the interval spans a decade or more"})
+                "reason": ((f"force data set the scale of E; the 95 % interval ({holds}: the law, Poisson's ratio "
+                            "and grid variants) spans a factor " if model_form else
+                            "force data set the scale of E; the 95 % interval spans a factor ") + f"{ratio:.2f}"
+                           if ok else f"force data set a scale, but the 95 % interval {lo:.3g}-{hi:.3g} Pa ({holds}) "
+                           f"spans a factor {ratio:.2f} (> {MAX_RATIO:g}): the data and the model form cannot pin E down"),
+                "statistic": {"rule": "core.identification.verdict (the fit's): structural and interval",
+                              "structural": True, "interval": [lo, hi], "ratio": ratio, "max_ratio": MAX_RATIO}})
     return out
 
 

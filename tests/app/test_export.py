@@ -108,6 +108,14 @@ def test_vtu_of_a_diagnosis_is_the_rest_mesh(runs, tmp_path):
     # on the default grid, the reported value (no fit on 13x5x5 in this diagnosis.json)
     assert load_run(diag).youngs_modulus == 4500.0 and load_run(diag).grid == (13, 5, 5)
     assert load_run(diag, youngs=3000.0).youngs_modulus == 3000.0
+    # a diagnosis that fitted its causes on 13x5x5 at another E than its mesh-corrected value
+    data = json.loads((diag / "diagnosis.json").read_text())
+    data["youngs_modulus"]["replay_grid_value_used"] = 8000.0
+    other = tmp_path / "diag-fitted-on-13x5x5"
+    other.mkdir()
+    (other / "diagnosis.json").write_text(json.dumps(data))
+    assert load_run(other).youngs_modulus == 8000.0 and "replay_grid_value_used" in load_run(other).youngs_source
+    assert load_run(other, grid=(7, 4, 4)).youngs_modulus == 4200.0
 
 
 # ---- sofa -----------------------------------------------------------------------------

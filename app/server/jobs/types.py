@@ -296,7 +296,7 @@ def write_diagnose_artifacts(diag, prepared, out, progress=None) -> dict:
     if progress is not None:
         progress(0.99, "the diagnosis in 3D: base and extended models, each cause's change")
     ym = summary.get("youngs_modulus") or {}
-    E = ym.get("value") or ym.get("replay_grid_value_used") or 5000.0
+    E = ym.get("replay_grid_value_used") or ym.get("value") or 5000.0  # the E its causes were fitted with
     shown = write_diagnosis_run(prepared, summary, tuple(diag.config.grid), float(E), Path(out) / VIEWER_RUN)
     summary["corrected_shown"] = shown["corrected_shown"]
     summary["diagnosis_layers"] = shown["layers"]
