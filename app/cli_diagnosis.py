@@ -19,12 +19,17 @@ def cmd_diagnose(args) -> int:
             diag = _diagnose_with_network(args, config, ex, cb)
         else:
             diag = diagnose(args.session, config, executor=ex, callback=cb)
+    from core.diagnosis.summary import gravity_at_reported_youngs
+
     out = write_diagnosis(diag, args.out)
     console = Console()
     if diag.causes:
         for c in diag.causes:
             fg = "" if c.force_gain is None else f", force gain {100 * c.force_gain:.1f} %"
             console.print(f"cause: [bold]{c.kind}[/bold] {c.parameters} (confidence {c.confidence:.2f}, test gain {100 * (c.gain or 0):.1f} %{fg})")
+            if c.kind == "gravity" and (g := gravity_at_reported_youngs(c.parameters["g"], diag.youngs)) is not None:
+                console.print(f"  (|g| {g:.2f} m/s^2 at the reported E {diag.youngs['value']:.4g} Pa: fitted on the "
+                              f"replay grid at {diag.youngs['replay_grid_value_used']:.4g} Pa, and the sag is set by rho g / E)")
     else:
         console.print("[bold]no effect found[/bold] beyond noise and model-form error")
     if diag.learned_correction:

@@ -137,6 +137,8 @@ def cause_geometry(effect: dict, size, youngs: dict | None = None) -> dict | Non
         ``"probe_vector"`` (``vector``, m, at the probe, drawn 5x: a robot offset) or
         ``"probe_sphere"`` (``radius``: the probe's true radius); with a ``label``.
     """
+    from core.diagnosis.summary import gravity_at_reported_youngs
+
     kind = effect["kind"]
     sx, sy, sz = (float(v) for v in size)
     if kind == "inclusion":
@@ -146,10 +148,10 @@ def cause_geometry(effect: dict, size, youngs: dict | None = None) -> dict | Non
     if kind == "gravity":
         g = np.asarray(effect["g"], float)
         label = f"gravity |g| {np.linalg.norm(g):.2f} m/s^2 (arrow 15 mm per 9.81)"
-        E, E_grid = (youngs or {}).get("value"), (youngs or {}).get("replay_grid_value_used")
-        if E and E_grid and abs(E / E_grid - 1.0) > 0.01:
-            label += (f" at the replay grid's E {E_grid:.0f} Pa; {np.linalg.norm(g) * E / E_grid:.2f} m/s^2 "
-                      f"at the mesh-corrected E {E:.0f} Pa")
+        at_E = gravity_at_reported_youngs(g, youngs)
+        if at_E is not None:
+            label += (f" at the replay grid's E {youngs['replay_grid_value_used']:.0f} Pa; {at_E:.2f} m/s^2 "
+                      f"at the mesh-corrected E {youngs['value']:.0f} Pa")
         return {"kind": kind, "shape": "vector", "origin": [sx / 2, sy / 2, sz + 0.02],
                 "vector": (g / 9.80665 * 0.015).tolist(), "label": label}
     if kind == "kinematic_offset":

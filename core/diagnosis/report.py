@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from core.diagnosis.engine import Diagnosis
+from core.diagnosis.summary import gravity_at_reported_youngs
 
 __all__ = ["write_diagnosis"]
 
@@ -155,6 +156,11 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
         for c in diag.causes:
             fg = "n/a" if c.force_gain is None else f"{100 * c.force_gain:.1f} %"
             lines.append(f"| {c.kind} | `{json.dumps(c.parameters)}` | {c.confidence:.2f} | {_mm(c.test_error)} | {100 * (c.gain or 0):.1f} % | {fg} |")
+        for c in diag.causes:
+            if c.kind == "gravity" and (g := gravity_at_reported_youngs(c.parameters["g"], diag.youngs)) is not None:
+                lines += ["", f"Gravity was fitted on the replay grid at E {diag.youngs['replay_grid_value_used']:.4g} Pa; "
+                              f"the sag is set by rho g / E, so at the reported E {diag.youngs['value']:.4g} Pa it reads "
+                              f"|g| = {g:.2f} m/s^2."]
         unid = [f"{c.kind}.{k}" for c in diag.causes for k, ok in c.identifiable.items() if not ok]
         if unid:
             lines += ["", "Not identifiable from these data (95 % interval too wide): " + ", ".join(unid) + "."]

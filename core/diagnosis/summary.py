@@ -15,7 +15,8 @@ from core.identification.verdict import MAX_RATIO
 from core.lab.probing import penetration_depth
 from core.simulation.effects import FitSpace
 from core.preparation import PreparedSession
-__all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation"]
+__all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation",
+           "gravity_at_reported_youngs"]
 
 
 def fit_fields(cand: FitSpace, fit: Fit) -> dict:
@@ -157,6 +158,25 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
                 "statistic": {"rule": "core.identification.verdict (the fit's): structural and interval",
                               "structural": True, "interval": [lo, hi], "ratio": ratio, "max_ratio": MAX_RATIO}})
     return out
+
+
+def gravity_at_reported_youngs(g, youngs: dict | None) -> float | None:
+    """|g| (m/s^2) of a gravity fitted on the replay grid, read at the reported E.
+
+    The sag is set by rho g / E, so a gravity fitted at the replay grid's E (stiffened by
+    volumetric locking on 13x5x5) reads, at the reported mesh-corrected E, as
+    ``|g| x value / replay_grid_value_used``.
+
+    Args:
+        g: (3,) the fitted gravity, m/s^2. youngs: diagnosis.json's ``youngs_modulus``.
+
+    Returns:
+        that |g|, or None when the two E are missing or equal within 1 %.
+    """
+    E, E_grid = (youngs or {}).get("value"), (youngs or {}).get("replay_grid_value_used")
+    if not E or not E_grid or abs(E / E_grid - 1.0) <= 0.01:
+        return None
+    return float(np.linalg.norm(np.asarray(g, dtype=np.float64)) * E / E_grid)
 
 
 def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:

@@ -36,3 +36,13 @@ def test_a_wide_statistical_interval_alone_is_not_identifiable():
     v = joint_youngs(_fit(5000.0, 2.5))  # 95 % from 5000 / 3.5 to 5000 x 3.5: a factor 12
     assert v["identifiable"] is False and "statistical" in v["reason"]
     assert joint_youngs(_fit(5000.0, 0.2))["identifiable"] is True
+
+
+def test_gravity_read_at_the_reported_youngs_modulus():
+    from core.diagnosis.summary import gravity_at_reported_youngs
+
+    youngs = {"value": 4803.0, "replay_grid_value_used": 8541.0}
+    assert gravity_at_reported_youngs([-1.23, 1.46, -16.6], youngs) == pytest.approx(
+        math.sqrt(1.23**2 + 1.46**2 + 16.6**2) * 4803.0 / 8541.0)
+    assert gravity_at_reported_youngs([0, 0, -9.81], {"value": 5000.0, "replay_grid_value_used": 5020.0}) is None
+    assert gravity_at_reported_youngs([0, 0, -9.81], {"value": None, "replay_grid_value_used": 5000.0}) is None
