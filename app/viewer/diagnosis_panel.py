@@ -139,7 +139,8 @@ class DiagnosisPanel:
 
     def set_colour(self, mode: str) -> None:
         """Colour the FEM layer by ``mode`` (one of the sequence's ``colour_modes()``); going
-        from per-vertex error to a signed layer hides the measured cloud, which would cover it.
+        from per-vertex error to a signed layer hides the measured cloud and the corrected
+        mesh, which would cover it.
 
         Raises:
             KeyError: the sequence shown has no such colour mode.
@@ -147,8 +148,10 @@ class DiagnosisPanel:
         with self._lock:
             if self.view is None or mode not in self.view.colour_modes():
                 raise KeyError(f"no colour mode {mode!r} here; have {self.view.colour_modes() if self.view else []}")
-            if self.colour == "error" and mode != "error" and self.gui_cloud.value:
-                self.gui_cloud.value = False  # the measured points would hide the surface's colours
+            if self.colour == "error" and mode != "error":
+                # the measured points and the corrected mesh (coloured by error) would cover the colours
+                self.gui_cloud.value = False
+                self.gui_corrected.value = False
                 self._apply_visibility()
             self.colour = mode
             if self.gui_colour.value != _mode_label(mode):

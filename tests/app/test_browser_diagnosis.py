@@ -184,6 +184,9 @@ def test_diagnosis_layers_in_3d_in_chromium(diagnosed, chromium, tmp_path):
         canvas = _canvas(page)
         time.sleep(1.0)
         shots_by = {"error": _grey(canvas.screenshot(path=str(shots / "colour-error.png")))}
+        for name, key in (("Measured cloud", "cloud"), ("Corrected mesh", "corrected")):  # on again: a signed
+            _checkbox(frame, name).click()  # colour hides them itself, as they would cover it
+            _until(lambda: _state(server.url)["visible"][key], f"{name} shown")
 
         frame.get_by_role("tab", name="Diagnosis").click()
         text = frame.locator("body").inner_text()
@@ -192,7 +195,7 @@ def test_diagnosis_layers_in_3d_in_chromium(diagnosed, chromium, tmp_path):
                              ("change_gravity", "gravity: its change of the surface")):
             _pick(frame, "Surface colour", option)
             _until(lambda: _state(server.url)["diagnosis"]["colour"] == mode, f"colour mode {mode}")
-            assert not _state(server.url)["visible"]["cloud"]
+            assert not _state(server.url)["visible"]["cloud"] and not _state(server.url)["visible"]["corrected"]
             frame.get_by_text("mm (blue)", exact=False).first.wait_for(timeout=10_000)  # the signed legend
             time.sleep(1.0)
             shots_by[mode] = _grey(canvas.screenshot(path=str(shots / f"colour-{mode}.png")))
