@@ -238,7 +238,8 @@ DEMO_EFFECTS: tuple[dict, ...] = (
 columns): the phantom's own weight, which the paper's model leaves out, and a robot
 calibration error of (3, -2, -3) mm (4.7 mm; the dVRK's cable-driven arms are off by a few
 millimetres). Measured on the 2-core machine: its diagnosis names both (offset fitted
-(1.5, -1.3, -2.9) mm, E 4.8 kPa for the truth's 5 kPa) in 290 s and 798 simulations."""
+(1.5, -1.3, -2.9) mm, E 4.8 kPa for the truth's 5 kPa) in 290 s and 798 simulations; on
+seeds 1-4 of the same design it named gravity only (the offset "cannot tell")."""
 
 
 # --------------------------------------------------------------------------------------
