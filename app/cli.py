@@ -180,9 +180,9 @@ def cmd_demo(args) -> int:
 
     data = Path(args.data)
     session = data / "demo-session"
-    if not (session / "session.json").exists() or not _demo_session_current(session):
-        what = "regenerating the demo session (it was made without the demo's hidden effects)" \
-            if (session / "session.json").exists() else "generating the demo session (once)"
+    if not _demo_session_current(session):
+        what = ("regenerating the demo session (it was made without the demo's hidden effects)"
+                if (session / "session.json").exists() else "generating the demo session (once)")
         with _progress(what) as cb:
             generate_session(session, preset="demo", seed=0, effects=list(DEMO_EFFECTS), with_force=True,
                              callback=cb, overwrite=True)

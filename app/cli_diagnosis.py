@@ -65,7 +65,7 @@ def cmd_plan(args) -> int:
 
     from app.cli import _progress
     from core.diagnosis import DiagnosisConfig, diagnose_prepared
-    from core.diagnosis.planner import PlanLimits, plan_experiment, write_plan
+    from core.diagnosis.planner import PlanError, PlanLimits, plan_experiment, plan_inputs, write_plan
     from core.errors import TissueTwinError
     from core.identification import executor
     from core.preparation import prepare_session
@@ -78,19 +78,12 @@ def cmd_plan(args) -> int:
             path = Path(args.diagnosis)
             path = path / "diagnosis.json" if path.is_dir() else path
             try:
-                data = json.loads(path.read_text())
-                detect = data["detectability"]
-                for k, a in data.get("answers", {}).items():
-                    if k in detect:
-                        detect[k]["answer"] = a
-                fixed = list(data.get("extended", {}).get("effects", []))
-                E = data.get("youngs_modulus", {}).get("replay_grid_value_used") or config.youngs_modulus
-            except (OSError, ValueError, KeyError) as exc:
+                detect, fixed, E = plan_inputs(json.loads(path.read_text()), config)
+            except (OSError, ValueError, PlanError) as exc:
                 raise TissueTwinError(f"{path}: not a diagnosis.json with detectability ({exc})") from exc
         else:
             diag = diagnose_prepared(prepared, config, executor=ex, callback=lambda f, m: cb(0.05 + 0.6 * f, m))
-            detect, fixed = diag.detectability, list(diag.extended_effects)
-            E = diag.youngs.get("replay_grid_value_used") or config.youngs_modulus
+            detect, fixed, E = plan_inputs(diag, config)
         plan = plan_experiment(prepared, detect, config, fixed=fixed, youngs_modulus=E,
                                kinds=args.kinds or None, limits=limits, executor=ex,
                                callback=lambda f, m: cb(0.65 + 0.35 * f, m))

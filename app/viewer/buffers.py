@@ -128,12 +128,11 @@ class SequenceView:
                 raise KeyError(f"sequence {self.seq.name!r} has no colour mode {mode!r}; it has {self.colour_modes()}")
             values = (d.base_residual if mode == "base_residual" else d.extended_residual if mode == "extended_residual"
                       else d.changes[mode[len("change_"):]])
-            finite = np.abs(values[np.isfinite(values)])
-            bound = max(float(np.percentile(finite, 90)) if finite.size else 0.0, 1e-5)
+            scaled = values  # the residuals of both models share one scale, to compare them
             if mode in ("base_residual", "extended_residual") and d.extended_residual is not None:
-                both = np.abs(np.concatenate([d.base_residual, d.extended_residual]))
-                both = both[np.isfinite(both)]
-                bound = max(float(np.percentile(both, 90)) if both.size else 0.0, 1e-5)  # one scale for both models
+                scaled = np.concatenate([d.base_residual, d.extended_residual])
+            finite = np.abs(scaled[np.isfinite(scaled)])
+            bound = max(float(np.percentile(finite, 90)) if finite.size else 0.0, 1e-5)
             self._signed[mode] = (values, nice_ceil_mm(bound))
         return self._signed[mode]
 

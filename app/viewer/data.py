@@ -156,13 +156,12 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
     Raises:
         FileNotFoundError: the folder is not a replay run with viewer arrays.
     """
-    from app.viewer.diagnosis_data import load_diagnosis_layers
+    from app.viewer.diagnosis_data import load_diagnosis_layers, load_diagnosis_view
     from core.simulation.mesh import box_mesh
 
     folder = Path(folder)
     meta = json.loads((folder / "replay.json").read_text())
     sequences = {}
-    diagnosis_view = None
     for name in meta["sequences"]:
         raw = np.load(folder / f"{name}.npz")
         view = np.load(folder / VIEWER_DIR / f"{name}.npz")
@@ -176,8 +175,6 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             c = np.load(cpath)
             corrected = c["positions"].astype(np.float32)
             corrected_err = c["vertex_error"].astype(np.float32) if "vertex_error" in c else None
-        layers, shown = load_diagnosis_layers(folder, name)
-        diagnosis_view = diagnosis_view or shown
         sequences[name] = SequenceArrays(
             name=name,
             role=str(view["role"]),
@@ -192,9 +189,9 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             probe_radius=float(view["probe_radius"]),
             corrected_positions=corrected,
             corrected_vertex_error=corrected_err,
-            diagnosis=layers,
+            diagnosis=load_diagnosis_layers(folder, name),
         )
-    return RunArrays(label=label or folder.name, sequences=sequences, diagnosis=diagnosis_view)
+    return RunArrays(label=label or folder.name, sequences=sequences, diagnosis=load_diagnosis_view(folder))
 
 
 def run_label(job_type: str, folder: str | Path, session: str, result: dict | None = None) -> str:

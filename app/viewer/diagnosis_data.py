@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["DiagnosisLayers", "vertex_normals", "signed_residuals", "cause_geometry", "write_diagnosis_run",
-           "load_diagnosis_layers", "DIAGNOSIS_DIR"]
+           "load_diagnosis_layers", "load_diagnosis_view", "DIAGNOSIS_DIR"]
 
 DIAGNOSIS_DIR = "diagnosis"
 
@@ -242,18 +242,21 @@ def write_diagnosis_run(prepared, summary: dict, grid, youngs: float, folder) ->
     return {"corrected_shown": {n: "extended" for n in tests} if effects else {}, "layers": layers}
 
 
-def load_diagnosis_layers(folder, sequence: str) -> tuple[DiagnosisLayers | None, dict | None]:
-    """The diagnosis layers of ``sequence`` and the run's ``view.json``, or (None, None)
-    when the run folder has no ``diagnosis/`` (a replay or train run)."""
-    folder = Path(folder) / DIAGNOSIS_DIR
-    path = folder / f"{sequence}.npz"
+def load_diagnosis_layers(folder, sequence: str) -> DiagnosisLayers | None:
+    """The diagnosis layers of ``sequence`` in a run folder, or None when it has none
+    (a replay or train run)."""
+    path = Path(folder) / DIAGNOSIS_DIR / f"{sequence}.npz"
     if not path.exists():
-        return None, None
+        return None
     with np.load(path) as z:
-        layers = DiagnosisLayers(
+        return DiagnosisLayers(
             base_residual=z["base_residual"].astype(np.float32),
             extended_residual=z["extended_residual"].astype(np.float32) if "extended_residual" in z else None,
             changes={k[len("change_"):]: z[k].astype(np.float32) for k in z.files if k.startswith("change_")},
         )
-    view = json.loads((folder / "view.json").read_text()) if (folder / "view.json").exists() else None
-    return layers, view
+
+
+def load_diagnosis_view(folder) -> dict | None:
+    """A run folder's ``diagnosis/view.json``, or None (not a diagnose run)."""
+    path = Path(folder) / DIAGNOSIS_DIR / "view.json"
+    return json.loads(path.read_text()) if path.exists() else None

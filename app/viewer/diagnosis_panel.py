@@ -60,6 +60,7 @@ class DiagnosisPanel:
     def _populate_diagnosis(self, tab) -> None:
         gui = self.client.gui
         self.colour = "error"
+        self.worst_frames: list[int] = []
         with tab:
             self.gui_colour = gui.add_dropdown("Surface colour", options=(MODE_LABELS["error"],),
                                                initial_value=MODE_LABELS["error"], disabled=True)
@@ -81,8 +82,8 @@ class DiagnosisPanel:
         if self.colour not in modes:
             self.colour = "error"
         labels = tuple(_mode_label(m) for m in modes)
-        frames = np.argsort(-np.nan_to_num(view.seq.frame_errors, nan=-np.inf))[:5]
-        worst = (_NO_FRAME,) + tuple(f"frame {int(f)}: {view.seq.frame_errors[f] * 1e3:.3f} mm" for f in frames)
+        self.worst_frames = [int(f) for f in np.argsort(-np.nan_to_num(view.seq.frame_errors, nan=-np.inf))[:5]]
+        worst = (_NO_FRAME,) + tuple(f"frame {f}: {view.seq.frame_errors[f] * 1e3:.3f} mm" for f in self.worst_frames)
         self._mute = True
         try:
             self.gui_colour.options = labels
@@ -175,10 +176,10 @@ class DiagnosisPanel:
                                             f"+{vmax * 1e3:g} mm (red; {what}); grey: no measured point")
 
     def _on_worst_selected(self) -> None:
-        value = self.gui_worst.value
-        if value.startswith("frame "):
+        options = self.gui_worst.options
+        if self.gui_worst.value in options[1:]:
             self.playing = False
-            self.set_frame(int(value.split()[1].rstrip(":")))
+            self.set_frame(self.worst_frames[options.index(self.gui_worst.value) - 1])
 
     def diagnosis_state(self) -> dict:
         """This tab's diagnosis controls: colour mode, its options, geometry shown, the
@@ -186,4 +187,4 @@ class DiagnosisPanel:
         return {"colour": self.colour,
                 "colour_modes": self.view.colour_modes() if self.view is not None else ["error"],
                 "geometry": [k for k in self._handles if k.startswith("geometry:") and not k.endswith(":label")],
-                "worst_frames": [int(o.split()[1].rstrip(":")) for o in self.gui_worst.options if o.startswith("frame ")]}
+                "worst_frames": list(self.worst_frames)}

@@ -76,7 +76,8 @@ class PlanPanel:
             self._frame(np.concatenate([centres, np.zeros((1, 3)), size[None]]), (0.0, -0.16, 0.12))
 
     def plan_state(self) -> dict:
-        """This tab's plan: the job shown, and the path's segments drawn (in contact or not)."""
+        """This tab's plan: the job shown, whether its path is drawn (``segments``: 1 line-segment
+        node, 0 none) and its move labels."""
         return {"job_id": self.plan_job,
-                "segments": int(sum(1 for k in self._handles if k == "plan:path")),
+                "segments": int("plan:path" in self._handles),
                 "labels": sorted(k for k in self._handles if k.startswith("plan:label"))}

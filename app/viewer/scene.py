@@ -354,11 +354,7 @@ class WorkbenchViewer:
 
     def _connect(self, client) -> None:
         token = self._tab_token(client)
-        try:
-            tab = TabView(self.shared, client, token=token)
-        except Exception:  # noqa: BLE001 - logged (viser would swallow it); the other tabs stay up
-            log.exception("viewer tab %s could not be built", client.client_id)
-            raise
+        tab = TabView(self.shared, client, token=token)  # viser prints what this raises
         with self._lock:
             self._tabs[int(client.client_id)] = tab
             shown = dict(self._shown_for.get(token) or self.shown)

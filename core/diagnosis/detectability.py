@@ -126,6 +126,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     out = {}
     in_group = {k for g in confounded for k in g}
     n_kinds = len(cfg.kinds)
+    refused = dict(refused or {})  # the caller's, and the kinds train and validation disagree on
     for kind in cfg.kinds:
         cls = EFFECT_KINDS[kind]
         searches = cands[kind].searches
@@ -153,7 +154,6 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         if best is None:
             best = (None, {})
         size, assumed = best
-        refused = dict(refused or {})
         e = nulls.get(kind)
         if (kind not in claimed and kind not in in_group and kind not in refused and e is not None
                 and math.isfinite(e.critical) and e.reproduction.get("expected", 0.0) >= e.critical > e.statistic):

@@ -48,7 +48,8 @@ from core.lab.probing import ProbeTrajectory, penetration_depth
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
 from core.preparation.probe import ProbePath
 from core.preparation import PreparedSequence, PreparedSession
-__all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_experiment", "write_plan", "NOMINAL_FORCE_NOISE"]
+__all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_inputs", "plan_experiment", "write_plan",
+           "NOMINAL_FORCE_NOISE"]
 
 MIN_JERK_PEAK = 15.0 / 8.0
 """Peak over mean speed of a minimum-jerk segment (Flash & Hogan 1985)."""
@@ -319,6 +320,34 @@ def _critical(alpha: float, n_kinds: int) -> float:
     from scipy.stats import chi2
 
     return float(chi2.isf(alpha / max(n_kinds, 1), 1))
+
+
+def plan_inputs(diagnosis, config: DiagnosisConfig | None = None) -> tuple[dict, list[dict], float]:
+    """What :func:`plan_experiment` takes from a diagnosis: every kind's detectability
+    (with its answer), the claimed causes, and the E they were fitted with on the replay
+    grid.
+
+    Args:
+        diagnosis: a ``core.diagnosis.Diagnosis`` or its ``diagnosis.json`` dict.
+        config: where the default E comes from when the diagnosis reports none.
+
+    Returns:
+        (detectability {kind: Detectability or its JSON with "answer"}, claimed effect
+        dicts, E in Pa).
+
+    Raises:
+        PlanError: a dict without a ``detectability`` object.
+    """
+    E0 = (config or DiagnosisConfig()).youngs_modulus
+    if isinstance(diagnosis, dict):
+        det = diagnosis.get("detectability")
+        if not isinstance(det, dict):
+            raise PlanError("the diagnosis has no detectability object")
+        answers = diagnosis.get("answers") or {}
+        detect = {k: {**d, "answer": answers.get(k, d.get("answer"))} for k, d in det.items()}
+        fixed = list((diagnosis.get("extended") or {}).get("effects") or [])
+        return detect, fixed, float((diagnosis.get("youngs_modulus") or {}).get("replay_grid_value_used") or E0)
+    return diagnosis.detectability, list(diagnosis.extended_effects), float(diagnosis.youngs.get("replay_grid_value_used") or E0)
 
 
 def plan_experiment(

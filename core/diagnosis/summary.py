@@ -148,13 +148,13 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
     # 95 % interval spans at most MAX_RATIO; here the interval also holds the model form
     ratio = hi / lo
     ok = bool(ratio <= MAX_RATIO)
-    holds = "statistical and model form" if model_form else "statistical"
+    holds = ("statistical and model form: the law, Poisson's ratio and grid variants" if model_form
+             else "statistical")
+    interval = f"the 95 % interval {lo:.3g}-{hi:.3g} Pa ({holds}) spans a factor {ratio:.2f}"
     out.update({"interval": [lo, hi], "identifiable": ok,
-                "reason": ((f"force data set the scale of E; the 95 % interval ({holds}: the law, Poisson's ratio "
-                            "and grid variants) spans a factor " if model_form else
-                            "force data set the scale of E; the 95 % interval spans a factor ") + f"{ratio:.2f}"
-                           if ok else f"force data set a scale, but the 95 % interval {lo:.3g}-{hi:.3g} Pa ({holds}) "
-                           f"spans a factor {ratio:.2f} (> {MAX_RATIO:g}): the data and the model form cannot pin E down"),
+                "reason": (f"force data set the scale of E; {interval}" if ok else
+                           f"force data set a scale, but {interval} (> {MAX_RATIO:g}): the data and the model form "
+                           "cannot pin E down"),
                 "statistic": {"rule": "core.identification.verdict (the fit's): structural and interval",
                               "structural": True, "interval": [lo, hi], "ratio": ratio, "max_ratio": MAX_RATIO}})
     return out

@@ -217,7 +217,7 @@ PRESET_NOTES: dict[str, str] = {
              "points per frame (~2.3k on the phantom); ~20 s, ~26 MB",
     "demo": "README main command: 6 x 10 s (validation, 2 x test, 3 x train); camera 15 Hz at "
             "480 x 360; kinematics 500 Hz; truth dt 5 ms; ~6.4k raw points per frame (~4.5k on the "
-            "phantom); ~20 s, ~75 MB (the demo command hides DEMO_EFFECTS in it, with force columns)",
+            "phantom); ~12 s, ~75 MB (the demo command hides DEMO_EFFECTS in it, with force columns)",
     "field": "a lab that is not our replay model: the small preset's sizes (4 x 10 s; validation, test, "
              "2 x train; 320 x 240 at 15 Hz, kinematics 200 Hz) with the truth drawn per seed "
              "(LabVariation: stable neo-Hookean or strain-stiffening Yeoh law, E 3-15 kPa, nu "

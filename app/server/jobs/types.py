@@ -323,7 +323,7 @@ def _diagnosis_of(job_id: int, ctx: JobContext) -> dict:
 def run_plan(p: PlanParams, ctx: JobContext) -> dict:
     from app.viewer.plan_data import write_plan_view
     from core.diagnosis import DiagnosisConfig, diagnose_prepared
-    from core.diagnosis.planner import PlanLimits, plan_experiment, write_plan
+    from core.diagnosis.planner import PlanLimits, plan_experiment, plan_inputs, write_plan
     from core.preparation import prepare_session
     from core.simulation.replay import ReplayConfig
 
@@ -331,16 +331,9 @@ def run_plan(p: PlanParams, ctx: JobContext) -> dict:
     prepared = prepare_session(ctx.session_path, ReplayConfig(grid=config.grid), picked=ctx.picked, callback=ctx.scaled(0.0, 0.05))
     limits = PlanLimits(max_depth=p.max_depth, speed=p.speed, duration=p.duration)
     with ctx.executor() as ex:
-        if p.diagnose_job_id is not None:
-            data = _diagnosis_of(p.diagnose_job_id, ctx)
-            detect = {k: {**d, "answer": (data.get("answers") or {}).get(k, d.get("answer"))}
-                      for k, d in data["detectability"].items()}
-            fixed = list((data.get("extended") or {}).get("effects") or [])
-            E = (data.get("youngs_modulus") or {}).get("replay_grid_value_used") or config.youngs_modulus
-        else:
-            diag = diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.05, 0.6))
-            detect, fixed = diag.detectability, list(diag.extended_effects)
-            E = diag.youngs.get("replay_grid_value_used") or config.youngs_modulus
+        diagnosis = (_diagnosis_of(p.diagnose_job_id, ctx) if p.diagnose_job_id is not None
+                     else diagnose_prepared(prepared, config, executor=ex, callback=ctx.scaled(0.05, 0.6)))
+        detect, fixed, E = plan_inputs(diagnosis, config)
         plan = plan_experiment(prepared, detect, config, fixed=fixed, youngs_modulus=E, kinds=p.kinds, limits=limits,
                                executor=ex, callback=ctx.scaled(0.6, 0.98))
     out = write_plan(plan, ctx.artifact_dir)

@@ -35,7 +35,7 @@ def show_run(body: ViewerShow, db: DB, viewer: ViewerDep):
     viewer = _need(viewer)
     job = job_svc.get_job(db, body.job_id)
     if job.status != "done" or not (job.result or {}).get("viewer"):
-        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replay and train jobs")
+        raise Invalid(f"job {job.id} is a {job.status} {job.type} job; the viewer shows finished replay, train and diagnose jobs")
     try:
         viewer.show_run(job.id, body.sequence, tab=body.tab)
     except KeyError as exc:  # the run has no such sequence
