@@ -71,3 +71,9 @@ class SimulationError(TissueTwinError):
 
     A run that diverges is *not* an exception: it is reported in the result's status.
     """
+
+
+class MeshingError(SessionFormatError):
+    """A phantom surface (``phantom.stl``) cannot be filled with tetrahedra: not
+    watertight, inconsistently oriented, self-intersecting, in millimetres, not resting
+    on z = 0, or refused by the mesher. ``path`` names the STL."""

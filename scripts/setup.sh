@@ -12,6 +12,18 @@ if ! ldconfig -p | grep -q 'libusb-1.0.so.0' || ! ldconfig -p | grep -q 'libgomp
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 libgomp1 >/dev/null
 fi
 
+# Libraries the gmsh wheel's libgmsh links against (OpenGL utility, X client libraries),
+# though the project only uses its mesher.
+for lib in libGLU.so.1 libXcursor.so.1 libXft.so.2 libXinerama.so.1 libGL.so.1; do
+  if ! ldconfig -p | grep -q "$lib"; then
+    SUDO=""
+    [ "$(id -u)" = 0 ] || SUDO="sudo"
+    $SUDO apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libglu1-mesa libxcursor1 libxft2 libxinerama1 libgl1 >/dev/null
+    break
+  fi
+done
+
 # Debian chromium for the workbench's headless browser tests (playwright drives it;
 # `playwright install` cannot download browsers here).
 if ! command -v chromium >/dev/null 2>&1; then

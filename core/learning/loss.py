@@ -25,36 +25,26 @@ from core.learning.config import LearningError
 __all__ = ["supersample_matrix", "point_to_mesh_distances_torch", "chamfer_loss"]
 
 
-def _interp_matrix(n: int, factor: int) -> np.ndarray:
-    u = np.linspace(0.0, n - 1.0, factor * (n - 1) + 1)
-    i0 = np.minimum(np.floor(u).astype(np.int64), n - 2)
-    w = u - i0
-    W = np.zeros((u.size, n))
-    W[np.arange(u.size), i0] = 1.0 - w
-    W[np.arange(u.size), i0 + 1] += w
-    return W
-
-
 def supersample_matrix(grid, factor: int = 3) -> np.ndarray:
     """(P, N) float64 matrix mapping node positions to the boundary vertices of the
     ``factor``x super-sampled grid, in the order of
-    :func:`core.simulation.metrics.supersampled_surface` (so ``S @ x`` equals it).
+    :func:`core.simulation.metrics.supersampled_surface` (so ``S @ x`` equals it); a
+    dense copy of :func:`core.simulation.metrics.surface_operator`.
 
     Args:
-        grid: (nx, ny, nz), each >= 2. factor: sub-divisions per cell edge (paper: 3).
+        grid: (nx, ny, nz), each >= 2, or a :class:`core.simulation.mesh.TetMesh`.
+            factor: sub-divisions per cell edge (paper: 3).
 
     Raises:
         LearningError: a grid smaller than 2 along an axis, or factor < 1.
     """
-    from core.simulation.metrics import surface_mask
+    from core.errors import SimulationError
+    from core.simulation.metrics import surface_operator
 
-    grid = tuple(int(g) for g in grid)
-    if len(grid) != 3 or min(grid) < 2 or int(factor) < 1:
-        raise LearningError(f"grid must be 3 node counts >= 2 and factor >= 1, got {grid}, {factor}")
-    Wx, Wy, Wz = (_interp_matrix(n, int(factor)) for n in grid)
-    S = np.kron(Wx, np.kron(Wy, Wz))
-    shape = (Wx.shape[0], Wy.shape[0], Wz.shape[0])
-    return S[surface_mask(shape)]
+    try:
+        return surface_operator(grid, factor).toarray()
+    except SimulationError as exc:
+        raise LearningError(str(exc)) from exc
 
 
 @torch.no_grad()

@@ -240,7 +240,8 @@ def prepare_session(
                                probe_radius=float(meta.probe.radius), calibration=cal,
                                sequences={n: PreparedSequence(n, role, np.asarray(ft), pth, clouds, force)
                                           for n, (role, ft, clouds, pth, force) in seqs.items()},
-                               timings=timings, reference=reference, cache_key=key)
+                               timings=timings, reference=reference, cache_key=key,
+                               stl_path=None if session.phantom_stl is None else Path(session.phantom_stl))
 
     key, folder = "", None
     if cache:

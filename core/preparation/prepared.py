@@ -168,6 +168,8 @@ class PreparedSession:
             read from the preparation cache). reference: (M, 3) the cleaned reference
             cloud, phantom frame, or None.
         cache_key: the preparation cache's key of this preparation ("" when not cached).
+        stl_path: the session's ``phantom.stl`` (the rest shape, phantom frame, m), or
+            None for the box of ``size``.
     """
 
     path: Path
@@ -179,6 +181,7 @@ class PreparedSession:
     timings: dict[str, float]
     reference: np.ndarray | None = None
     cache_key: str = ""
+    stl_path: Path | None = None
 
     def rest_frames(self, name: str, *, settle: float = 1.0, clearance: float = 0.002) -> np.ndarray:
         """Indices of frames of sequence ``name`` where the phantom is at rest: the probe

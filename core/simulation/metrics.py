@@ -7,6 +7,13 @@ only: the instrument occludes parts of the phantom, so the other direction has n
 correspondences). We keep the super-sampled vertices on the boundary of the grid:
 interior vertices are never observed, and letting a measured point match one would
 hide a mesh that is too shallow.
+
+On a mesh that is not a grid (an STL phantom filled by Gmsh) the same figure
+super-samples each surface triangle ``factor`` times per edge (its vertices at
+barycentric coordinates ``(i, j, k) / factor``, shared along edges); on the box grid
+the grid's own trilinear super-sampling is used, so the box keeps the paper's metric
+exactly (at rest the two give the same vertices; deformed, the grid's is bilinear over
+each face quad).
 """
 
 from __future__ import annotations
@@ -14,9 +21,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+import scipy.sparse as sp
+
 from core.errors import SimulationError
 
-__all__ = ["supersample_grid", "supersampled_surface", "surface_mask", "point_to_mesh_distances"]
+__all__ = ["supersample_grid", "supersampled_surface", "surface_mask", "surface_operator",
+           "point_to_mesh_distances"]
 
 
 def _upsample_axis(arr: np.ndarray, axis: int, factor: int) -> np.ndarray:
@@ -60,10 +70,84 @@ def surface_mask(shape: tuple[int, int, int]) -> np.ndarray:
     return m.ravel()
 
 
-def supersampled_surface(positions: np.ndarray, grid: tuple[int, int, int], factor: int = 3) -> np.ndarray:
-    """(P, 3) boundary vertices of the super-sampled grid for one frame's (N, 3) positions."""
-    g = supersample_grid(positions, grid, factor)
-    return g.reshape(-1, 3)[surface_mask(g.shape[:3])]
+def _grid_of(mesh_or_grid):
+    """(grid tuple or None, TetMesh or None) of a grid tuple or a TetMesh."""
+    if isinstance(mesh_or_grid, (tuple, list, np.ndarray)):
+        return tuple(int(g) for g in mesh_or_grid), None
+    return mesh_or_grid.grid, mesh_or_grid
+
+
+def _interp_matrix(n: int, factor: int) -> np.ndarray:
+    u = np.linspace(0.0, n - 1.0, factor * (n - 1) + 1)
+    i0 = np.minimum(np.floor(u).astype(np.int64), n - 2)
+    w = u - i0
+    W = np.zeros((u.size, n))
+    W[np.arange(u.size), i0] = 1.0 - w
+    W[np.arange(u.size), i0 + 1] += w
+    return W
+
+
+def _triangle_operator(n_nodes: int, triangles: np.ndarray, factor: int) -> sp.csr_matrix:
+    """(P, N) barycentric super-sampling of surface triangles, each shared point once."""
+    bary = [(i, j, factor - i - j) for i in range(factor + 1) for j in range(factor + 1 - i)]
+    rows, cols, vals = [], [], []
+    index: dict[tuple, int] = {}
+    for tri in np.asarray(triangles, dtype=np.int64):
+        for w in bary:
+            key = tuple(sorted((int(tri[a]), w[a]) for a in range(3) if w[a]))
+            row = index.get(key)
+            if row is None:
+                row = index[key] = len(index)
+                for node, weight in key:
+                    rows.append(row)
+                    cols.append(node)
+                    vals.append(weight / factor)
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(index), n_nodes))
+
+
+def surface_operator(mesh_or_grid, factor: int = 3) -> sp.csr_matrix:
+    """(P, N) sparse matrix ``S`` with ``S @ positions`` the super-sampled surface
+    vertices of one frame's (N, 3) node positions (the paper's metric's mesh points).
+
+    Args:
+        mesh_or_grid: a :class:`core.simulation.mesh.TetMesh`, or a grid (nx, ny, nz).
+            Grids (and grid meshes) super-sample trilinearly and keep the boundary
+            vertices, in the order of :func:`supersampled_surface`; other meshes
+            super-sample their surface triangles (module docstring).
+        factor: sub-divisions per edge (paper: 3), >= 1.
+
+    Raises:
+        SimulationError: factor < 1 or a grid smaller than 2 along an axis.
+    """
+    factor = int(factor)
+    if factor < 1:
+        raise SimulationError(f"factor must be >= 1, got {factor}")
+    grid, mesh = _grid_of(mesh_or_grid)
+    if grid is not None:
+        if len(grid) != 3 or min(grid) < 2:
+            raise SimulationError(f"grid must be 3 node counts >= 2, got {grid}")
+        Wx, Wy, Wz = (sp.csr_matrix(_interp_matrix(n, factor)) for n in grid)
+        S = sp.kron(Wx, sp.kron(Wy, Wz, format="csr"), format="csr")
+        shape = (Wx.shape[0], Wy.shape[0], Wz.shape[0])
+        return S[surface_mask(shape)]
+    cache = mesh.__dict__.setdefault("_surface_operators", {})
+    if factor not in cache:
+        cache[factor] = _triangle_operator(mesh.n_nodes, mesh.surface_triangles, factor)
+    return cache[factor]
+
+
+def supersampled_surface(positions: np.ndarray, mesh_or_grid, factor: int = 3) -> np.ndarray:
+    """(P, 3) super-sampled surface vertices for one frame's (N, 3) positions.
+
+    ``mesh_or_grid`` is a grid (nx, ny, nz) or a :class:`core.simulation.mesh.TetMesh`
+    (see :func:`surface_operator`)."""
+    grid, mesh = _grid_of(mesh_or_grid)
+    if grid is not None:
+        g = supersample_grid(positions, grid, factor)
+        return g.reshape(-1, 3)[surface_mask(g.shape[:3])]
+    if positions.shape != (mesh.n_nodes, 3):
+        raise SimulationError(f"positions must be ({mesh.n_nodes}, 3) for this mesh, got {positions.shape}")
+    return surface_operator(mesh, factor) @ positions
 
 
 def point_to_mesh_distances(points: np.ndarray, mesh_points: np.ndarray) -> np.ndarray:

@@ -19,7 +19,8 @@ import numpy as np
 from core.io import Session
 from core.preparation import Calibration, PreparedSession, prepare_session
 from core.simulation.effects import Effect
-from core.simulation.mesh import box_mesh
+from core.simulation.mesh import TetMesh
+from core.simulation.meshing import phantom_mesh
 from core.simulation.metrics import point_to_mesh_distances, supersampled_surface
 from core.simulation.model import Material, SimulationConfig, build_model
 from core.simulation.solver import SimulationResult, simulate
@@ -46,7 +47,10 @@ class ReplayConfig:
     Attributes:
         youngs_modulus: E of the replay model, Pa (default: the paper's identified 5e3).
         poisson_ratio: nu (default 0.44; the paper takes 0.4-0.5 from the literature).
-        grid: node grid (nx, ny, nz); the paper's is (13, 5, 5).
+        grid: node grid (nx, ny, nz) of a box phantom; the paper's is (13, 5, 5).
+        element_size: target element size of a phantom given by ``phantom.stl``, m
+            (:func:`core.simulation.meshing.tetrahedralise`; None: about the paper's node
+            count). Unused for a box.
         law: material law, "corotational" (the paper's) or "stable_neo_hookean".
         simulation: numerical settings of the FEM.
         effects: model options beyond the base model (see ``core.simulation.effects``).
@@ -61,6 +65,7 @@ class ReplayConfig:
     youngs_modulus: float = 5000.0
     poisson_ratio: float = 0.44
     grid: tuple[int, int, int] = (13, 5, 5)
+    element_size: float | None = None
     law: str = "corotational"
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     effects: tuple[Effect, ...] = ()
@@ -105,6 +110,7 @@ class ReplayResult:
     sequences: dict[str, SequenceReplay]
     timings: dict[str, float]
     noise_floor: float = float("nan")
+    mesh: TetMesh | None = None
 
     def to_json(self) -> dict:
         return {
@@ -112,6 +118,9 @@ class ReplayResult:
             "youngs_modulus": self.config.youngs_modulus,
             "poisson_ratio": self.config.poisson_ratio,
             "grid": list(self.config.grid),
+            **({"mesh": {"kind": "stl", "nodes": self.mesh.n_nodes, "tets": self.mesh.n_tets,
+                         "element_size": self.config.element_size}}
+               if self.mesh is not None and self.mesh.grid is None else {}),
             "effects": [e.to_dict() for e in self.config.effects],
             "sequences": {
                 name: {
@@ -129,13 +138,25 @@ class ReplayResult:
         }
 
 
-def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3) -> float:
+def replay_mesh(prepared: PreparedSession, grid=(13, 5, 5), element_size: float | None = None) -> TetMesh:
+    """The replay's mesh of ``prepared``'s phantom: the box grid of the session's size, or
+    its ``phantom.stl`` filled with tetrahedra (:func:`core.simulation.meshing.phantom_mesh`).
+
+    Raises:
+        SimulationError: a bad grid. MeshingError: a bad STL."""
+    return phantom_mesh(prepared.size, getattr(prepared, "stl_path", None), grid=grid, element_size=element_size)
+
+
+def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3, *,
+                mesh: TetMesh | None = None) -> float:
     """Error of a perfect model, estimated from the data: the mean distance (m) from the
     measured points of rest frames (:meth:`PreparedSession.rest_frames`) to the
     super-sampled rest mesh. It holds the sensor noise, the registration residual and the
     super-sampling spacing. Falls back to the cleaned reference cloud when no sequence has
-    a rest frame; NaN when neither exists."""
-    surface = supersampled_surface(box_mesh(prepared.size, grid).nodes, grid, factor)
+    a rest frame; NaN when neither exists. ``mesh`` (default: :func:`replay_mesh` of
+    ``grid``) is the rest mesh."""
+    mesh = replay_mesh(prepared, grid) if mesh is None else mesh
+    surface = supersampled_surface(mesh.nodes, mesh, factor)
     points = [np.asarray(prepared.sequences[n].clouds[i], dtype=np.float64)
               for n in prepared.sequences for i in prepared.rest_frames(n)]
     if not points and prepared.reference is not None and prepared.reference.shape[0]:
@@ -149,7 +170,8 @@ def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], fact
     """Per-frame mean and per-point distances from clouds to the super-sampled mesh.
 
     Args:
-        positions: (F, N, 3) node positions, m. grid: (nx, ny, nz).
+        positions: (F, N, 3) node positions, m. grid: (nx, ny, nz), or the
+            :class:`TetMesh` of any phantom (:func:`core.simulation.metrics.surface_operator`).
         clouds: F arrays (M_f, 3) of measured points, m, same frame.
 
     Returns:
@@ -181,7 +203,7 @@ def replay_sequence(
     if model is None:
         model = build_replay_model(prepared, config)
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times, callback=callback)
-    errs, dists = frame_errors(sim.positions, config.grid, seq.clouds, config.supersample)
+    errs, dists = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample)
     if sim.ok:
         mean = float(np.concatenate(dists).mean()) if dists else float("nan")
     else:
@@ -199,9 +221,10 @@ def replay_sequence(
 
 
 def build_replay_model(prepared: PreparedSession, config: ReplayConfig, *, factorize: bool = True):
-    """The FEM model of ``config`` for the phantom of ``prepared`` (box of session size);
-    ``factorize`` as :func:`core.simulation.build_model`'s."""
-    mesh = box_mesh(prepared.size, config.grid)
+    """The FEM model of ``config`` for the phantom of ``prepared`` (the box of the
+    session's size, or its ``phantom.stl``: :func:`replay_mesh`); ``factorize`` as
+    :func:`core.simulation.build_model`'s."""
+    mesh = replay_mesh(prepared, config.grid, config.element_size)
     return build_model(
         mesh,
         prepared.mass,
@@ -256,7 +279,8 @@ def replay(
         calibration=prepared.calibration,
         sequences=results,
         timings=timings,
-        noise_floor=noise_floor(prepared, config.grid, config.supersample),
+        noise_floor=noise_floor(prepared, config.grid, config.supersample, mesh=model.mesh),
+        mesh=model.mesh,
     )
 
 
@@ -266,13 +290,24 @@ def _scaled(callback: Callback | None, lo: float, hi: float) -> Callback | None:
     return lambda f, msg: callback(lo + (hi - lo) * f, msg)
 
 
+def _mesh_arrays(mesh: TetMesh | None) -> dict:
+    if mesh is None:
+        return {}
+    out = {"surface_triangles": np.asarray(mesh.surface_triangles)}
+    if mesh.grid is None:
+        out.update(rest_nodes=np.asarray(mesh.nodes), tets=np.asarray(mesh.tets))
+    return out
+
+
 def write_replay(result: ReplayResult, out: str | Path) -> Path:
     """Write ``replay.json``, ``<sequence>.npz`` (node trajectories, probe path, forces,
     per-frame errors) and ``frame_errors.csv`` into ``out``.
 
     The npz holds: ``times`` (F,) s, ``positions`` (F, N, 3) m phantom frame,
     ``frame_errors`` (F,) m, ``probe_centres`` (F, 3) m, ``contact_force`` (F, 3) N,
-    ``grid`` (3,). Returns the folder.
+    ``grid`` (3,) (the box grid; ignored for an STL phantom), ``surface_triangles``
+    (T, 3) int64 of the replayed mesh and, for an STL phantom, ``rest_nodes`` (N, 3) m
+    and ``tets`` (E, 4). Returns the folder.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -286,6 +321,7 @@ def write_replay(result: ReplayResult, out: str | Path) -> Path:
             probe_centres=s.simulation.probe_centres,
             contact_force=s.simulation.contact_force,
             grid=np.asarray(result.config.grid),
+            **_mesh_arrays(result.mesh),
         )
         rows += [f"{name},{i},{t:.6f},{e:.9g}" for i, (t, e) in enumerate(zip(s.frame_times, s.frame_errors))]
     (out / "frame_errors.csv").write_text("\n".join(rows) + "\n")
