@@ -40,19 +40,12 @@ from typing import Any
 import numpy as np
 
 from core.errors import TissueTwinError, UnitsError
+from core.io.checks import FORMAT, check_cloud_metres, check_positions_metres
+from core.io.meta import CameraSpec, SessionMeta
 from core.io.ply import read_ply
-from core.io.session import (
-    FORMAT,
-    CameraSpec,
-    Corners,
-    Kinematics,
-    SessionExistsError,
-    SessionMeta,
-    SessionWriter,
-    _check_cloud_metres,
-    _check_positions_metres,
-    _read_corners,
-)
+from core.io.records import Corners, Kinematics
+from core.io.tables import read_corners
+from core.io.writer import SessionExistsError, SessionWriter
 
 __all__ = [
     "BagError",
@@ -580,7 +573,7 @@ def _poses(bag: _Bag, config: BagImportConfig, st: np.ndarray, v: np.ndarray, ms
 
         pos = pos + Rotation.from_quat(q).apply(offset)
     try:
-        _check_positions_metres(bag.path, pos, "probe position")
+        check_positions_metres(bag.path, pos, "probe position")
     except UnitsError:
         norms = np.linalg.norm(pos, axis=1)
         i = int(np.argmax(norms))
@@ -639,7 +632,7 @@ def _cloud(bag: _Bag, topic: str, stamp: int, msg: Any) -> tuple[np.ndarray, int
 
 def _check_cloud_units(bag: _Bag, topic: str, stamp: int, points: np.ndarray) -> None:
     try:
-        _check_cloud_metres(bag.path, points)
+        check_cloud_metres(bag.path, points)
     except UnitsError as exc:
         raise UnitsError(bag.path, f"topic {topic!r}, cloud at {_stamp(stamp)} s: {exc.problem}") from None
 
@@ -686,7 +679,7 @@ class _BagPlan:
 def _load_corners(corners: Corners | str | os.PathLike) -> Corners:
     if isinstance(corners, Corners):
         return corners
-    return _read_corners(Path(corners))
+    return read_corners(Path(corners))
 
 
 def import_bags(
@@ -767,7 +760,7 @@ def import_bags(
     corner_data = _load_corners(corners)
     ref_points = None if reference is None else read_ply(reference)
     if ref_points is not None:
-        _check_cloud_metres(Path(reference), ref_points)
+        check_cloud_metres(Path(reference), ref_points)
     ref_source = None if reference is None else str(reference)
 
     # ---- pass 1: poses, forces, cloud stamps, intrinsics, reference --------------------

@@ -1,5 +1,6 @@
-"""Calibration of a session: robot -> phantom (Kabsch on corner touches) and camera ->
-phantom (ICP of the reference cloud), with their residuals (Wu et al. 2020, Sec. 3.1)."""
+"""Calibration of a session: robot -> phantom (Kabsch on corner or landmark touches) and
+camera -> phantom (ICP of the reference cloud), with their residuals (Wu et al. 2020,
+Sec. 3.1)."""
 
 from __future__ import annotations
 
@@ -7,8 +8,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.errors import SessionFormatError
 from core.io import Session, read_picked
-from core.registration import calibrate_camera, calibrate_robot, instrument_hints
+from core.registration import (
+    RigidFit,
+    calibrate_camera,
+    calibrate_robot,
+    calibrate_robot_landmarks,
+    instrument_hints,
+    landmark_normals,
+)
 
 __all__ = ["Calibration", "calibrate"]
 
@@ -18,13 +27,14 @@ class Calibration:
     """Registration results with their residuals.
 
     Attributes:
-        T_phantom_robot: (4, 4) robot base -> phantom (Kabsch on corner touches).
+        T_phantom_robot: (4, 4) robot base -> phantom (Kabsch on corner touches, or on
+            landmark touches when the session has ``calibration/landmarks.csv``).
         T_phantom_camera: (4, 4) camera -> phantom (point-to-plane ICP).
-        robot_rms: corner-touch residual RMS, m.
+        robot_rms: corner- (or landmark-) touch residual RMS, m.
         camera_rms: ICP inlier RMS, m.
         camera_fitness: ICP inlier fraction.
         probe_sigma: standard error of the calibrated probe's vertical position over the
-            top face, m, from the corner-touch residuals: per-axis touch noise
+            top face, m, from the corner- (or landmark-) touch residuals: per-axis touch noise
             ``sigma^2 = sum(r^2) / (3 N - 6)`` (6 rigid degrees of freedom), propagated
             through the Kabsch fit as ``sigma^2 / N`` at the touches' centroid plus the
             tilt term, 1/3 of that averaged over the face. NaN when unknown.
@@ -58,6 +68,10 @@ class Calibration:
 def calibrate(session: Session, *, picked=None) -> Calibration:
     """Register robot and camera to the phantom frame.
 
+    The robot is registered on ``calibration/landmarks.csv`` when the session has it
+    (:func:`_calibrate_robot_on_landmarks`), otherwise on ``calibration/corners.csv``
+    (:func:`core.registration.calibrate_robot`).
+
     Args:
         session: a read session.
         picked: optional (points_camera (K, 3), points_phantom (K, 3)), K >= 3, to
@@ -67,12 +81,16 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
 
     Raises:
         RegistrationError: a registration that does not fit.
-        SessionFormatError: a malformed ``calibration/picked.json``.
+        SessionFormatError: a malformed ``calibration/picked.json``; (landmark
+            calibration) a ``phantom.stl`` that cannot be read or is not watertight.
     """
     meta = session.meta
     if picked is None:
         picked = read_picked(session.path)
-    robot = calibrate_robot(session.corners, meta.phantom.size, meta.probe.radius)
+    if session.landmark_touches is not None:
+        robot = _calibrate_robot_on_landmarks(session)
+    else:
+        robot = calibrate_robot(session.corners, meta.phantom.size, meta.probe.radius)
     reference = session.reference_cloud()
     hints = []
     for seq in list(session.sequences.values())[:2]:
@@ -97,6 +115,36 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
         camera_fitness=float(camera.fitness),
         probe_sigma=_probe_sigma(robot.residuals),
     )
+
+
+def _calibrate_robot_on_landmarks(session: Session) -> RigidFit:
+    """``T_phantom_robot`` from ``calibration/landmarks.csv`` (Kabsch 1976).
+
+    Each touch's phantom-frame sphere centre is its landmark (``session.json``) plus the
+    probe radius along the outward normal of the rest surface there: ``phantom.stl``
+    when present, else the box ``[0, size]`` (:func:`core.registration.landmark_normals`).
+
+    Raises:
+        RegistrationError: as :func:`core.registration.calibrate_robot_landmarks`.
+        SessionFormatError: ``phantom.stl`` cannot be read, or has no outward normal at a
+            landmark (not watertight).
+    """
+    import trimesh  # noqa: PLC0415 (heavy, only needed here)
+
+    meta = session.meta
+    surface = session.phantom_mesh()
+    if surface is None:
+        size = np.asarray(meta.phantom.size, dtype=np.float64)
+        surface = trimesh.creation.box(extents=size)
+        surface.apply_translation(size / 2.0)  # centred -> spans [0, size], the phantom frame
+    names = list(meta.landmarks)
+    try:
+        normals = landmark_normals(surface, np.stack([meta.landmarks[n] for n in names]))
+    except ValueError as exc:
+        where = session.phantom_stl if session.phantom_stl is not None else session.path / "session.json"
+        raise SessionFormatError(where, f"no outward normal at the landmarks: {exc}") from exc
+    return calibrate_robot_landmarks(session.landmark_touches, meta.landmarks,
+                                     dict(zip(names, normals)), meta.probe.radius)
 
 
 def _probe_sigma(residuals: np.ndarray) -> float:
