@@ -90,10 +90,11 @@ def cmd_generate(args) -> int:
     paths = None
     if args.plan:
         paths = [_plan_path(args.plan)] * len(preset.sequence_roles)
-    with _progress(f"generating {args.preset} session") as cb:
+    shape = "stl" if args.phantom_stl else args.shape
+    with _progress(f"generating {args.preset} session ({shape} phantom)") as cb:
         path = generate_session(
             args.out, preset=preset, seed=args.seed, effects=effects, with_force=args.force,
-            overwrite=args.overwrite, callback=cb, paths=paths,
+            overwrite=args.overwrite, callback=cb, paths=paths, shape=args.shape, phantom_stl=args.phantom_stl,
         )
     print(f"session written to {path}")
     return 0
@@ -325,6 +326,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--effects", default=None, help="JSON list of effects, e.g. '[{\"kind\": \"gravity\", \"g\": [0, 0, -9.81]}]'")
     p.add_argument("--force", action="store_true", help="write probe force columns fx, fy, fz")
+    p.add_argument("--shape", choices=("box", "dome", "kidney"), default="box",
+                   help="phantom shape: the paper's box (default), a dome (spherical cap on a flat base) or a "
+                        "kidney-like body (an ellipsoid with a flattened base); other shapes are written as "
+                        "phantom.stl and calibrated on landmarks")
+    p.add_argument("--phantom-stl", default=None, metavar="FILE.stl",
+                   help="use this watertight STL (metres, z up, resting on z = 0) as the phantom instead of --shape")
     p.add_argument("--overwrite", action="store_true", help="replace an existing session folder")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_generate)

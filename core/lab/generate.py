@@ -42,6 +42,7 @@ from core.lab.camera import (
     table_ring_mask,
 )
 from core.lab.probing import ProbePlan, ProbingConfig, plan_from_path, plan_sequence
+from core.lab.surface_probing import plan_surface_sequence
 from core.lab.variation import LabVariation, apply_variation
 
 __all__ = [
@@ -315,7 +316,9 @@ def _quat_xyzw(R: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class _SimJob:
-    grid: tuple[int, int, int]
+    mesh_spec: tuple
+    """("grid", (nx, ny, nz), size) for the box, ("stl", path, element_size) otherwise."""
+    mass: float
     youngs_modulus: float
     poisson_ratio: float
     law: str
@@ -332,13 +335,24 @@ class _SimJob:
     output_times: np.ndarray
 
 
-def _build_model(job: _SimJob):
-    from core.simulation import Material, SimulationConfig, box_mesh, build_model, effect_from_dict
+def _truth_mesh(spec: tuple):
+    """The truth's mesh of a ``_SimJob.mesh_spec`` (a box grid, or an STL filled by Gmsh;
+    meshes are cached by content, so worker processes mesh an STL once)."""
+    from core.simulation import box_mesh
+    from core.simulation.meshing import tetrahedralise
 
-    mesh = box_mesh(size=PHANTOM_SIZE, grid=job.grid)
+    if spec[0] == "grid":
+        return box_mesh(size=spec[2], grid=spec[1])
+    return tetrahedralise(spec[1], spec[2])
+
+
+def _build_model(job: _SimJob):
+    from core.simulation import Material, SimulationConfig, build_model, effect_from_dict
+
+    mesh = _truth_mesh(job.mesh_spec)
     return build_model(
         mesh,
-        mass=PHANTOM_MASS,
+        mass=job.mass,
         material=Material(youngs_modulus=job.youngs_modulus, poisson_ratio=job.poisson_ratio, law=job.law,
                           stiffening=job.stiffening),
         config=SimulationConfig(dt=job.dt, rayleigh_mass=job.rayleigh_mass,
@@ -361,7 +375,7 @@ def _run_sim(job: _SimJob, callback: ProgressCallback | None = None):
     status, message, wall time)."""
     from core.simulation import ProbePath, simulate
 
-    key = (job.grid, job.youngs_modulus, job.poisson_ratio, job.law, job.stiffening,
+    key = (job.mesh_spec, job.mass, job.youngs_modulus, job.poisson_ratio, job.law, job.stiffening,
            job.contact_stiffness_per_modulus, job.dt, job.newton_iterations,
            job.rayleigh_mass, job.rayleigh_stiffness, repr(job.physical_effects))
     model = _MODEL_CACHE.get(key)
@@ -399,6 +413,76 @@ class _Sequence:
     rng: np.random.Generator
 
 
+PHANTOM_DENSITY = PHANTOM_MASS / float(np.prod(PHANTOM_SIZE))
+"""Density of the paper's gel, kg/m^3 (104.01 g in its box): the mass of other shapes."""
+
+
+@dataclass
+class _Phantom:
+    """The lab's phantom: the paper's box, or a surface (dome, kidney-like, a given STL)."""
+
+    shape: str
+    size: np.ndarray
+    mass: float
+    surface: tuple[np.ndarray, np.ndarray] | None = None
+    stl_path: Path | None = None
+    landmarks: dict | None = None
+    normals: np.ndarray | None = None
+
+
+def _landmarks_of(V: np.ndarray, F: np.ndarray) -> tuple[dict, np.ndarray]:
+    """Named calibration landmarks of a surface: its highest point ("apex") and the
+    points furthest along (+-1, 0, 1) and (0, +-1, 1) ("x+", "x-", "y+", "y-"), each a
+    vertex of the surface, with their outward normals (for the touching probe centre)."""
+    from core.registration import landmark_normals
+
+    import trimesh
+
+    surface = trimesh.Trimesh(V, F, process=False)
+    names = {"apex": (0.0, 0.0, 1.0), "x+": (1.0, 0.0, 1.0), "x-": (-1.0, 0.0, 1.0),
+             "y+": (0.0, 1.0, 1.0), "y-": (0.0, -1.0, 1.0)}
+    centre = V.mean(axis=0)
+    points = {}
+    for name, d in names.items():
+        d = np.asarray(d) / np.linalg.norm(d)
+        points[name] = V[int(np.argmax((V - centre) @ d))]
+    P = np.array(list(points.values()))
+    return {k: v.tolist() for k, v in points.items()}, landmark_normals(surface, P)
+
+
+def _make_phantom(shape: str, phantom_stl, workdir: Path) -> _Phantom:
+    """The phantom of ``generate_session(shape=..., phantom_stl=...)``; an STL goes to
+    ``workdir/phantom.stl`` (x and y shifted so its bounding box starts at 0)."""
+    from core.errors import MeshingError
+
+    from core.lab.shapes import SHAPES, shape_surface
+
+    if phantom_stl is None and shape == "box":
+        return _Phantom("box", np.asarray(PHANTOM_SIZE, dtype=np.float64), PHANTOM_MASS)
+    import trimesh
+
+    if phantom_stl is not None:
+        from core.simulation.meshing import check_stl
+
+        try:
+            surf = check_stl(phantom_stl)
+        except MeshingError as exc:
+            raise LabError(str(exc)) from exc
+        V, F = np.asarray(surf.vertices, dtype=np.float64), np.asarray(surf.faces, dtype=np.int64)
+        V[:, :2] -= V[:, :2].min(axis=0)
+        shape = "stl"
+    elif shape in SHAPES:
+        V, F = shape_surface(shape)
+    else:
+        raise LabError(f"unknown phantom shape {shape!r}: one of {', '.join(SHAPES)} (or give phantom_stl)")
+    mesh = trimesh.Trimesh(V, F, process=False)
+    path = workdir / "phantom.stl"
+    mesh.export(str(path))
+    landmarks, normals = _landmarks_of(V, F)
+    return _Phantom(shape, np.asarray(mesh.bounds[1], dtype=np.float64), PHANTOM_DENSITY * float(mesh.volume),
+                    (V, F), path, landmarks, normals)
+
+
 def _material_truth(cfg: LabConfig, size: np.ndarray) -> dict:
     """truth.json "material": law, citation, density and damping (and the stiffening of
     the "stable_yeoh" law)."""
@@ -411,7 +495,7 @@ def _material_truth(cfg: LabConfig, size: np.ndarray) -> dict:
     if cfg.law == "stable_yeoh":
         out["stiffening"] = float(cfg.stiffening)
     out.update({
-        "density": PHANTOM_MASS / float(np.prod(size)),
+        "density": PHANTOM_DENSITY,
         "rayleigh_mass": cfg.rayleigh_mass,
         "rayleigh_stiffness": cfg.rayleigh_stiffness,
     })
@@ -437,6 +521,8 @@ def generate_session(
     overwrite: bool = False,
     callback: ProgressCallback | None = None,
     paths: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
+    shape: str = "box",
+    phantom_stl: str | Path | None = None,
 ) -> Path:
     """Generate a synthetic session folder (``tissue-session/1`` plus ``truth.json``).
 
@@ -465,19 +551,31 @@ def generate_session(
             and its tool's shaft leans 25 degrees from vertical away from the camera,
             unrolled (:func:`core.lab.probing.plan_from_path`). Camera, noise, calibration,
             effects (input effects too) and force columns are as for random plans.
+        shape: "box" (the paper's 68.7 x 39.3 x 35.8 mm block on a node grid), "dome"
+            or "kidney" (:mod:`core.lab.shapes`). Other shapes are written as
+            ``phantom.stl``; their truth is the STL filled by Gmsh with about as many
+            nodes as ``cfg.grid`` holds; the mass is the paper's gel density times the
+            volume; pokes go anywhere on the reachable surface
+            (:func:`core.lab.surface_probing.plan_surface_sequence`); calibration touches
+            five named landmarks (``calibration/landmarks.csv``) instead of corners.
+        phantom_stl: a watertight STL (metres, z up, resting on z = 0) to use as the
+            phantom instead of ``shape`` (shifted in x and y so that its bounding box
+            starts at 0).
 
     Returns:
         the session folder.
 
     Raises:
-        LabError: unknown preset, bad effect, a bad path (count, shapes, times, or
-            deeper than 15 mm into the phantom), or a truth simulation that diverged.
+        LabError: unknown preset or shape, bad effect, a bad path (count, shapes, times,
+            or deeper than 15 mm into the phantom), a bad STL, or a truth simulation
+            that diverged.
         core.io.SessionExistsError: ``out`` exists and ``overwrite`` is false.
     """
     from core.io import (
         CameraSpec,
         Corners,
         Kinematics,
+        LandmarkTouches,
         PhantomSpec,
         ProbeSpec,
         SequenceSpec,
@@ -521,7 +619,21 @@ def generate_session(
     time_offset = float(by_kind["time_offset"]["offset"]) if "time_offset" in by_kind else 0.0
     kin_offset = (np.asarray(by_kind["kinematic_offset"]["offset"], float)
                   if "kinematic_offset" in by_kind else np.zeros(3))
-    size = np.asarray(PHANTOM_SIZE)
+    import shutil
+    import tempfile
+
+    workdir = Path(tempfile.mkdtemp(prefix="tissuetwin-lab-"))
+    try:
+        phantom = _make_phantom(shape, phantom_stl, workdir)
+    except BaseException:
+        shutil.rmtree(workdir, ignore_errors=True)
+        raise
+    size = phantom.size
+    reachable = None
+    if phantom.surface is not None:
+        from core.lab.surface_probing import ReachableSurface
+
+        reachable = ReachableSurface(*phantom.surface)
 
     # ---- session-wide draws, in a fixed order -----------------------------------------
     rng = np.random.default_rng(seed)
@@ -560,8 +672,12 @@ def generate_session(
         if paths is None:
             azimuth = cam_azimuth + np.pi + srng.uniform(-np.pi / 3, np.pi / 3)
             try:
-                plan = plan_sequence(srng, size=size, radius=r_true, duration=float(dur), config=cfg.probing,
-                                     tool_azimuth=azimuth)
+                if reachable is None:
+                    plan = plan_sequence(srng, size=size, radius=r_true, duration=float(dur), config=cfg.probing,
+                                         tool_azimuth=azimuth)
+                else:
+                    plan = plan_surface_sequence(srng, surface=reachable, radius=r_true, duration=float(dur),
+                                                 config=cfg.probing, tool_azimuth=azimuth)
             except ValueError as exc:
                 raise LabError(f"sequence seq{i:02d} ({role}, {dur} s): {exc}") from exc
         else:
@@ -583,22 +699,32 @@ def generate_session(
         else:
             pt = np.linspace(0.0, seq.duration, int(np.ceil(seq.duration * 200)) + 1)
             pc, ot = seq.plan.trajectory(pt), seq.frame_times
-        return _SimJob(tuple(cfg.grid), E, cfg.poisson_ratio, cfg.law, float(cfg.stiffening),
+        return _SimJob(mesh_spec, phantom.mass, E, cfg.poisson_ratio, cfg.law, float(cfg.stiffening),
                        float(cfg.contact_stiffness_per_modulus), cfg.dt, cfg.newton_iterations,
                        cfg.rayleigh_mass, cfg.rayleigh_stiffness, physical, pt, pc, r_true, ot)
 
-    from core.simulation import box_mesh
+    if phantom.stl_path is None:
+        mesh_spec = ("grid", tuple(cfg.grid), tuple(float(v) for v in PHANTOM_SIZE))
+    else:
+        from core.simulation.meshing import default_element_size
 
-    mesh = box_mesh(size=PHANTOM_SIZE, grid=cfg.grid)
+        volume = phantom.mass / PHANTOM_DENSITY
+        mesh_spec = ("stl", str(phantom.stl_path), default_element_size(volume, int(np.prod(cfg.grid))))
+    try:
+        mesh = _truth_mesh(mesh_spec)
+    except TissueTwinError as exc:
+        shutil.rmtree(workdir, ignore_errors=True)
+        raise LabError(f"the phantom cannot be meshed: {exc}") from exc
     triangles = np.asarray(mesh.surface_triangles)
 
     meta = SessionMeta(
-        phantom=PhantomSpec(size=size, mass=PHANTOM_MASS, fixed="bottom"),
+        phantom=PhantomSpec(size=size, mass=phantom.mass, fixed="bottom"),
         probe=ProbeSpec(radius=r_nominal),
         camera=CameraSpec(rate_hz=float(cfg.camera_rate_hz), depth_accuracy=float(cfg.depth_accuracy),
                           intrinsics=intrinsics.to_dict()),
         sequences=tuple(SequenceSpec(s.name, s.role) for s in sequences),
         raw={},
+        **({"landmarks": phantom.landmarks} if phantom.landmarks else {}),
     )
     total_frames = sum(len(s.frame_times) for s in sequences)
     sim_share = 0.5  # rough split of the progress bar between simulation and rendering
@@ -613,15 +739,29 @@ def generate_session(
     try:
         with SessionWriter(out, meta, overwrite=overwrite) as writer:
             report(0.0, "calibration")
-            # ---- corner-touch calibration (true radius: the sphere's lowest point touches)
-            labels, touches = [], []
-            for label, (cx, cy) in (("x0y0", (0, 0)), ("x1y0", (1, 0)), ("x0y1", (0, 1)), ("x1y1", (1, 1))):
-                corner = np.array([cx * size[0], cy * size[1], size[2] + r_true])
-                for _ in range(cfg.corner_touches):
-                    labels.append(label)
-                    touches.append(corner + corner_rng.normal(0.0, cfg.corner_noise, 3))
-            writer.write_corners(Corners(labels=tuple(labels),
-                                         positions=_transform(T_robot_phantom, np.asarray(touches))))
+            if phantom.landmarks is None:
+                # ---- corner-touch calibration (true radius: the sphere's lowest point touches)
+                labels, touches = [], []
+                for label, (cx, cy) in (("x0y0", (0, 0)), ("x1y0", (1, 0)), ("x0y1", (0, 1)), ("x1y1", (1, 1))):
+                    corner = np.array([cx * size[0], cy * size[1], size[2] + r_true])
+                    for _ in range(cfg.corner_touches):
+                        labels.append(label)
+                        touches.append(corner + corner_rng.normal(0.0, cfg.corner_noise, 3))
+                writer.write_corners(Corners(labels=tuple(labels),
+                                             positions=_transform(T_robot_phantom, np.asarray(touches))))
+            else:
+                # ---- landmark touches: the sphere touches each landmark along its normal
+                labels, touches = [], []
+                for (label, point), normal in zip(phantom.landmarks.items(), phantom.normals):
+                    centre = np.asarray(point) + r_true * normal
+                    for _ in range(cfg.corner_touches):
+                        labels.append(label)
+                        touches.append(centre + corner_rng.normal(0.0, cfg.corner_noise, 3))
+                writer.write_landmark_touches(LandmarkTouches(
+                    labels=tuple(labels), positions=_transform(T_robot_phantom, np.asarray(touches))))
+                import trimesh
+
+                writer.write_phantom_stl(trimesh.Trimesh(*phantom.surface, process=False))
 
             # ---- reference cloud: the phantom at rest, no instrument, averaged frames
             rest = _rest_positions(job_for(None))
@@ -745,8 +885,10 @@ def generate_session(
                 "kinematics": {"rate_hz": cfg.kinematics_rate_hz, "encoder_noise": cfg.encoder_noise,
                                "force": bool(with_force), "force_noise": cfg.force_noise if with_force else None,
                                "corner_noise": cfg.corner_noise},
-                "mesh": {"grid": list(cfg.grid), "nodes": int(mesh.n_nodes), "tets": int(mesh.n_tets),
-                         "split": "6 tets per hex (Kuhn)"},
+                "mesh": ({"grid": list(cfg.grid), "nodes": int(mesh.n_nodes), "tets": int(mesh.n_tets),
+                          "split": "6 tets per hex (Kuhn)"} if mesh_spec[0] == "grid" else
+                         {"shape": phantom.shape, "mesher": "gmsh", "element_size": float(mesh_spec[2]),
+                          "nodes": int(mesh.n_nodes), "tets": int(mesh.n_tets)}),
                 "sim": {"dt": cfg.dt, "integrator": "implicit_euler", "newton_iterations": cfg.newton_iterations},
                 "sequences": seq_meta,
             }
@@ -764,5 +906,6 @@ def generate_session(
         if executor is not None:
             executor.shutdown(wait=True, cancel_futures=True)
         _MODEL_CACHE.clear()
+        shutil.rmtree(workdir, ignore_errors=True)
     report(1.0, f"done in {time.perf_counter() - t_wall:.1f} s")
     return path

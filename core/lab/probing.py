@@ -28,6 +28,7 @@ __all__ = [
     "tool_rotation",
     "penetration_depth",
     "plan_from_path",
+    "PathBuilder",
     "DEFAULT_PATH_TILT_DEG",
     "MAX_PATH_PENETRATION",
 ]
@@ -256,7 +257,7 @@ def penetration_depth(centres: np.ndarray, size, radius: float) -> np.ndarray:
     return radius - dist
 
 
-class _Builder:
+class PathBuilder:
     """Accumulates knots; times advance by distance / speed (at least ``min_dt``)."""
 
     min_dt = 0.05
@@ -381,7 +382,7 @@ def plan_sequence(
         size[1] / 2 + rng.uniform(-0.005, 0.005),
         z_safe + rng.uniform(0.0, 0.01),
     ])
-    b = _Builder(start)
+    b = PathBuilder(start)
     b.wait(rng.uniform(*cfg.start_rest_range))
     pokes: list[Poke] = []
     failures = 0

@@ -95,7 +95,9 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
     hints = []
     for seq in list(session.sequences.values())[:2]:
         n = len(seq)
-        hints += instrument_hints(seq, robot.T, sorted({0, n // 4, n // 2}))
+        frames = sorted({0, n // 4, n // 2}) if session.phantom_stl is None else \
+            _frames_off_axis(seq, robot.T, meta.phantom.size)
+        hints += instrument_hints(seq, robot.T, frames)
     if reference is None:
         first = next(iter(session.sequences.values()))
         reference = first.cloud(0)
@@ -115,6 +117,30 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
         camera_fitness=float(camera.fitness),
         probe_sigma=_probe_sigma(robot.residuals),
     )
+
+
+def _frames_off_axis(seq, T_phantom_robot: np.ndarray, size, count: int = 3) -> list[int]:
+    """``count`` frames of ``seq`` whose probe is furthest (horizontally) from the
+    phantom's vertical axis while over or beside it and less than 3 cm above its top:
+    a phantom of revolution leaves the camera's yaw to the instrument
+    (:func:`core.registration.symmetry.resolve_yaw`), and an instrument near the axis
+    cannot tell yaws apart. Frames at least 0.5 s apart."""
+    from core.registration.icp import probe_pose_phantom
+
+    t = np.asarray(seq.frames.t, dtype=np.float64)
+    centres, _ = probe_pose_phantom(seq.kinematics, t, T_phantom_robot)
+    size = np.asarray(size, dtype=np.float64)
+    axis_xy = size[:2] / 2
+    reach = np.linalg.norm(centres[:, :2] - axis_xy, axis=1)
+    ok = (np.all(np.abs(centres[:, :2] - axis_xy) <= size[:2] / 2 + 0.01, axis=1) & (centres[:, 2] < size[2] + 0.03))
+    chosen: list[int] = []
+    for i in np.argsort(-np.where(ok, reach, -1.0)):
+        if not ok[i] or len(chosen) == count:
+            break
+        if all(abs(t[i] - t[j]) >= 0.5 for j in chosen):
+            chosen.append(int(i))
+    n = len(seq)
+    return sorted(chosen) if chosen else sorted({0, n // 4, n // 2})
 
 
 def _calibrate_robot_on_landmarks(session: Session) -> RigidFit:
