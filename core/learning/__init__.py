@@ -6,9 +6,12 @@ Public surface::
     result = train_correction(frames, prepared.size, NetworkConfig(kind="2d"))
     save_checkpoint(path, result.network, session=prepared.path, replay_config=config)
     ck = load_checkpoint(path)
-    field = correction_field(ck, frames["seq01"])                       # (F, nx*ny, 3) m
+    field = correction_field(ck, frames["seq01"])                       # (F, K, 3) m of ck.network.corrected_nodes
     corrected = replay_in_loop(ck, prepared, "seq01", reference=frames["seq01"])  # the paper's use (anchored)
     report = train_and_test(prepared, config, NetworkConfig(kind="3d"))   # + test errors
+
+On a ``phantom.stl`` (an unstructured mesh) the same calls work: the frames carry the
+replay's mesh and the networks run on a voxel grid around it (:mod:`core.learning.voxels`).
 
 Importing this package imports torch.
 """
@@ -30,6 +33,7 @@ from core.learning.experiment import EvaluationResult, TrainReport, evaluate_net
 from core.learning.loss import chamfer_loss, point_to_mesh_distances_torch, supersample_matrix
 from core.learning.networks import CorrectionNetwork, UNet2D, UNet3D, build_network
 from core.learning.train import TrainResult, train_correction
+from core.learning.voxels import VoxelMap, corrected_nodes, voxel_map
 
 __all__ = [
     "CorrectedSequence",
@@ -67,4 +71,7 @@ __all__ = [
     "build_network",
     "TrainResult",
     "train_correction",
+    "VoxelMap",
+    "corrected_nodes",
+    "voxel_map",
 ]

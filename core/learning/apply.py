@@ -57,6 +57,10 @@ leave the other nodes within 2.2-4.3 mm of the plain replay (E = 1 and 5 kPa, tw
 sequences, offsets of 4 mm up, down and sideways; smallest det ratio 0.64-0.69 where
 measured) and no run diverges. :func:`replay_in_loop` reports the largest such offset of a
 run as ``max_unobserved_offset``.
+
+On an unstructured mesh (a ``phantom.stl``) "the top layer" above is the network's
+``corrected_nodes``, the surface nodes above z = 0 (:mod:`core.learning.voxels`); the
+other free nodes (the interior) follow them the same way.
 """
 
 from __future__ import annotations
@@ -70,7 +74,7 @@ import torch
 
 from core.learning.checkpoint import Checkpoint, load_checkpoint
 from core.learning.config import LearningError
-from core.learning.data import SequenceFrames, frames_from_replay, probe_poses, top_layer_nodes
+from core.learning.data import SequenceFrames, frames_from_replay, probe_poses, same_mesh
 
 __all__ = ["CorrectedSequence", "correction_field", "correct_offline", "replay_in_loop", "mean_error", "signed_residual",
            "elastic_extension", "IN_LOOP_MODES"]
@@ -81,9 +85,10 @@ def _as_checkpoint(checkpoint) -> Checkpoint:
 
 
 def _field(net, positions: np.ndarray, poses: np.ndarray, batch: int = 256) -> np.ndarray:
-    """(F, T, 3) float64 corrections, NaN for frames with non-finite positions."""
+    """(F, K, 3) float64 corrections of ``net.corrected_nodes``, NaN for frames with
+    non-finite positions."""
     F = positions.shape[0]
-    T = int(np.prod(net.grid[:2]))
+    T = int(net.corrected_nodes.size)
     out = np.full((F, T, 3), np.nan)
     ok = np.flatnonzero(np.isfinite(positions).all(axis=(1, 2)))
     with torch.no_grad():
@@ -94,8 +99,19 @@ def _field(net, positions: np.ndarray, poses: np.ndarray, batch: int = 256) -> n
     return out
 
 
+def _check_mesh(ck: Checkpoint, grid, mesh, what: str = "replay") -> None:
+    """Raise LearningError unless a replay on ``grid`` / ``mesh`` is what ``ck``'s network corrects."""
+    if tuple(grid) != tuple(ck.grid):
+        raise LearningError(f"{what} grid {tuple(grid)} differs from the network's {ck.grid}")
+    if not same_mesh(ck.mesh, mesh):
+        def describe(m):
+            return "the box grid" if m is None or m.grid is not None else f"a {m.n_nodes}-node mesh"
+        raise LearningError(f"{what} mesh ({describe(mesh)}) is not the one the network was trained on "
+                            f"({describe(ck.mesh)}): same phantom.stl, element size and Gmsh needed")
+
+
 def correction_field(checkpoint, replay, *, prepared=None, config=None) -> np.ndarray:
-    """The network's per-frame correction of the top-layer nodes of a replay.
+    """The network's per-frame correction of the observed nodes of a replay.
 
     Args:
         checkpoint: a checkpoint path or a loaded :class:`Checkpoint`.
@@ -104,13 +120,15 @@ def correction_field(checkpoint, replay, *, prepared=None, config=None) -> np.nd
             ``prepared`` session it ran on and its ``config`` (for the robot poses).
 
     Returns:
-        (F, nx*ny, 3) float64 corrections, m, phantom frame, for the top-layer nodes in
-        (i, j) grid order (node indices :func:`core.learning.top_layer_nodes`); NaN rows
-        for frames whose simulation diverged. Each component is within half the voxel
-        length of its axis.
+        (F, K, 3) float64 corrections, m, phantom frame, of the nodes
+        ``checkpoint.network.corrected_nodes``: on the box grid the top layer in (i, j)
+        grid order (K = nx*ny, :func:`core.learning.top_layer_nodes`), on an unstructured
+        mesh its surface nodes above z = 0 (:func:`core.learning.voxels.corrected_nodes`).
+        NaN rows for frames whose simulation diverged. Each component is within half the
+        voxel length of its axis.
 
     Raises:
-        LearningError: a replay on another grid than the network's, or a
+        LearningError: a replay on another grid or mesh than the network's, or a
             ``SequenceReplay`` without ``prepared``/``config``.
     """
     ck = _as_checkpoint(checkpoint)
@@ -118,8 +136,7 @@ def correction_field(checkpoint, replay, *, prepared=None, config=None) -> np.nd
         if prepared is None or config is None:
             raise LearningError("correction_field needs prepared= and config= to read the robot poses of a SequenceReplay")
         replay = frames_from_replay(prepared, replay, config)
-    if tuple(replay.grid) != tuple(ck.grid):
-        raise LearningError(f"replay grid {replay.grid} differs from the network's {ck.grid}")
+    _check_mesh(ck, replay.grid, replay.mesh)
     return _field(ck.network, replay.positions, replay.poses)
 
 
@@ -127,11 +144,14 @@ def mean_error(positions: np.ndarray, clouds, grid, factor: int = 3) -> tuple[fl
     """The paper's error of a trajectory: mean distance (m) from every measured point to
     the nearest vertex of the ``factor``x super-sampled mesh, over all frames.
 
+    ``grid`` is the box's (nx, ny, nz) or any :class:`TetMesh`
+    (:func:`core.simulation.metrics.surface_operator`).
+
     Returns:
         (mean m or NaN when any frame is non-finite, (F,) per-frame means m, number of points).
     """
     from core.simulation.replay import frame_errors
-    per_frame, dists = frame_errors(positions, tuple(grid), clouds, factor)
+    per_frame, dists = frame_errors(positions, grid if hasattr(grid, "nodes") else tuple(grid), clouds, factor)
     d = np.concatenate(dists) if dists else np.zeros(0)
     mean = float(d.mean()) if d.size and np.all(np.isfinite(d)) else float("nan")
     return mean, per_frame, int(d.size)
@@ -149,13 +169,19 @@ def signed_residual(positions: np.ndarray, clouds, grid, size) -> tuple[float, i
     Args:
         positions: (F, N, 3) node positions, m, phantom frame, grid-major order.
         clouds: F arrays (M_f, 3) of measured points, m, phantom frame.
-        grid: (nx, ny, nz). size: (3,) box size, m.
+        grid: (nx, ny, nz), or a :class:`TetMesh`. size: (3,) box size, m.
 
     Returns:
         (mean residual in m, NaN when a frame is non-finite or no point is kept; number
-        of points kept). Positive: the measured top lies above the model's.
+        of points kept). Positive: the measured top lies above the model's. (NaN, 0) on
+        an unstructured mesh: the residual is defined over the box's flat top face.
     """
     from core.identification.residuals import top_residuals
+
+    if hasattr(grid, "nodes"):
+        if grid.grid is None:
+            return float("nan"), 0
+        grid = grid.grid
 
     size = np.asarray(size, dtype=np.float64).reshape(3)
     total, n = 0.0, 0
@@ -210,7 +236,7 @@ class CorrectedSequence:
         name, role: sequence identity.
         mode: "offline" or "in_loop".
         positions: (F, N, 3) float64 corrected node positions, m, phantom frame.
-        corrections: (F, nx*ny, 3) float64 the network's top-layer corrections, m.
+        corrections: (F, K, 3) float64 the network's corrections of ``corrected_nodes``, m.
         frame_errors: (F,) m. mean_error: m over all points (NaN if diverged).
         n_points: measured points scored. status: "ok" or "diverged".
         seconds: wall time of the correction (offline) or of the whole replay (in-loop).
@@ -237,14 +263,16 @@ class CorrectedSequence:
     signed_residual: float = float("nan")
     n_signed: int = 0
     max_unobserved_offset: float = float("nan")
+    corrected_nodes: np.ndarray | None = None
 
     def save(self, path) -> None:
-        """Write an npz: ``positions`` (F, N, 3) m phantom frame, ``corrections`` (F, T, 3) m
-        of the top-layer nodes (:func:`core.learning.top_layer_nodes` order),
-        ``frame_errors`` (F,) m and ``n_nodes``."""
+        """Write an npz: ``positions`` (F, N, 3) m phantom frame, ``corrections`` (F, K, 3) m
+        of the nodes ``corrected_nodes`` (K,) int64 (on the box grid the top layer in
+        :func:`core.learning.top_layer_nodes` order), ``frame_errors`` (F,) m and ``n_nodes``."""
         grid_n = self.positions.shape[1]
+        extra = {} if self.corrected_nodes is None else {"corrected_nodes": np.asarray(self.corrected_nodes, dtype=np.int64)}
         np.savez_compressed(path, positions=self.positions, corrections=self.corrections,
-                            frame_errors=self.frame_errors, n_nodes=np.int64(grid_n))
+                            frame_errors=self.frame_errors, n_nodes=np.int64(grid_n), **extra)
 
 
 def correct_offline(checkpoint, frames: SequenceFrames, *, factor: int = 3, size=None) -> CorrectedSequence:
@@ -252,7 +280,7 @@ def correct_offline(checkpoint, frames: SequenceFrames, *, factor: int = 3, size
 
     Args:
         checkpoint: path or :class:`Checkpoint`.
-        frames: the replay's per-frame arrays (same grid as the network).
+        frames: the replay's per-frame arrays (same grid and mesh as the network).
         factor: mesh super-sampling of the error.
         size: (3,) box size, m, for the signed residual (default: the network's).
 
@@ -264,15 +292,16 @@ def correct_offline(checkpoint, frames: SequenceFrames, *, factor: int = 3, size
     field = correction_field(ck, frames)
     t_inf = time.perf_counter() - t0
     pos = frames.positions.copy()
-    pos[:, top_layer_nodes(frames.grid)] += field
-    err, per_frame, n = mean_error(pos, frames.clouds, frames.grid, factor)
+    nodes = ck.network.corrected_nodes
+    pos[:, nodes] += field
+    err, per_frame, n = mean_error(pos, frames.clouds, frames.mesh_or_grid, factor)
     size = ck.network.size.double().numpy() if size is None else size
-    signed, n_signed = signed_residual(pos, frames.clouds, frames.grid, size)
+    signed, n_signed = signed_residual(pos, frames.clouds, frames.mesh_or_grid, size)
     return CorrectedSequence(
         name=frames.name, role=frames.role, mode="offline", positions=pos, corrections=field,
         frame_errors=per_frame, mean_error=err, n_points=n, status=frames.status,
         seconds=time.perf_counter() - t0, inference_seconds=t_inf,
-        signed_residual=signed, n_signed=n_signed, max_unobserved_offset=0.0,
+        signed_residual=signed, n_signed=n_signed, max_unobserved_offset=0.0, corrected_nodes=nodes,
     )
 
 
@@ -308,9 +337,14 @@ def replay_in_loop(checkpoint, prepared, name: str, *, config=None, session=None
         ``max_unobserved_offset`` compares the other nodes with the plain replay
         (anchored mode; NaN in additive mode).
 
+    The corrected nodes are ``checkpoint.network.corrected_nodes``: the top layer on the
+    box grid, the surface nodes above z = 0 on an unstructured mesh (what the network
+    outputs); every other free node is "unobserved" and follows elastically.
+
     Raises:
-        LearningError: unknown sequence or mode, a config grid other than the network's,
-            or a ``reference`` of another sequence, grid, E or frame count.
+        LearningError: unknown sequence or mode, a config grid or mesh other than the
+            network's, or a ``reference`` of another sequence, grid, mesh, E or frame count.
+        MeshingError: the session's ``phantom.stl`` cannot be meshed.
     """
     from core.simulation.replay import build_replay_model
     from core.simulation.solver import simulate
@@ -325,11 +359,13 @@ def replay_in_loop(checkpoint, prepared, name: str, *, config=None, session=None
         raise LearningError(f"{prepared.path}: no prepared sequence {name!r}; it has {list(prepared.sequences)}")
     seq = prepared.sequences[name]
     n_frames = seq.frame_times.size
-    top = top_layer_nodes(config.grid)
-    t_inf = [0.0]
     net = ck.network
+    top = net.corrected_nodes
+    t_inf = [0.0]
     t0 = time.perf_counter()
     model = build_replay_model(prepared, config)
+    _check_mesh(ck, config.grid, model.mesh)
+    surface = model.mesh if model.mesh.grid is None else tuple(config.grid)
 
     if mode == "anchored":
         if reference is None:  # the shadow plain replay (deterministic, so it can run first)
@@ -339,8 +375,9 @@ def replay_in_loop(checkpoint, prepared, name: str, *, config=None, session=None
                 positions=np.asarray(plain.positions, dtype=np.float64),
                 poses=probe_poses(prepared, name, seq.frame_times, session), clouds=tuple(seq.clouds),
                 grid=tuple(int(g) for g in config.grid), youngs_modulus=float(config.youngs_modulus),
-                status=plain.status)
+                status=plain.status, mesh=model.mesh)
         if (reference.name != name or tuple(reference.grid) != tuple(config.grid) or reference.n_frames != n_frames
+                or reference.positions.shape[1] != model.mesh.n_nodes or not same_mesh(reference.mesh, model.mesh)
                 or not math.isclose(reference.youngs_modulus, float(config.youngs_modulus), rel_tol=1e-12)):
             raise LearningError(
                 f"reference must be the plain replay of {name!r} on grid {tuple(config.grid)} at E = "
@@ -374,8 +411,8 @@ def replay_in_loop(checkpoint, prepared, name: str, *, config=None, session=None
             return x
 
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times, callback=callback, frame_hook=hook)
-    err, per_frame, n = mean_error(sim.positions, seq.clouds, config.grid, config.supersample)
-    signed, n_signed = signed_residual(sim.positions, seq.clouds, config.grid, prepared.size)
+    err, per_frame, n = mean_error(sim.positions, seq.clouds, surface, config.supersample)
+    signed, n_signed = signed_residual(sim.positions, seq.clouds, surface, prepared.size)
     if not sim.ok:
         err = signed = float("nan")
     drift = float("nan")
@@ -387,5 +424,5 @@ def replay_in_loop(checkpoint, prepared, name: str, *, config=None, session=None
         name=name, role=seq.role, mode="in_loop", positions=sim.positions, corrections=corrections,
         frame_errors=per_frame, mean_error=err, n_points=n, status=sim.status,
         seconds=time.perf_counter() - t0, inference_seconds=t_inf[0],
-        signed_residual=signed, n_signed=n_signed, max_unobserved_offset=drift,
+        signed_residual=signed, n_signed=n_signed, max_unobserved_offset=drift, corrected_nodes=top,
     )

@@ -4,7 +4,18 @@ A checkpoint is one ``torch.save`` file holding a plain dict (loadable with
 ``torch.load(..., weights_only=True)``): the format tag, the session path, the network
 configuration, the node grid and box size that fix the input encoding and the bound,
 the replay settings the training simulation used (E, Poisson's ratio, law, effects,
-numerics), the training schedule and history, and the weights.
+numerics, element size), the training schedule and history, and the weights.
+
+A network trained on an unstructured mesh (a ``phantom.stl``) also stores that mesh's
+arrays under ``"mesh"`` (``nodes`` (N, 3) float64 m phantom frame, ``tets`` (E, 4) int64,
+``surface_triangles`` (T, 3) int64, ``size`` (3,) m; torch tensors), from which its
+voxel map (:mod:`core.learning.voxels`) is rebuilt on load. The arrays, not the STL's
+content hash, because the map is tied to the exact nodes and their order, and those
+depend on more than the STL: the element size, the Gmsh version and the meshing recipe
+(``core.simulation.meshing.MESH_VERSION``) all change them, and a hash could only say
+the mesh no longer matches, not rebuild it. They are small (~20 kB at the default
+element size) and make the checkpoint usable without the session or Gmsh. Checkpoints
+without ``"mesh"`` (all older ones) are box-grid networks and load as before.
 """
 
 from __future__ import annotations
@@ -31,7 +42,7 @@ class Checkpoint:
         network: the :class:`CorrectionNetwork` in eval mode.
         session: path of the session it was trained on.
         replay: dict of the replay settings of the training simulation (``youngs_modulus``
-            Pa, ``poisson_ratio``, ``grid``, ``law``, ``effects``, ``simulation``,
+            Pa, ``poisson_ratio``, ``grid``, ``element_size`` (m or None), ``law``, ``effects``, ``simulation``,
             ``voxel_size`` m, ``supersample``); :meth:`replay_config` rebuilds it.
         extra: anything else stored (training config, history, ...).
     """
@@ -48,17 +59,25 @@ class Checkpoint:
 
     @property
     def grid(self) -> tuple[int, int, int]:
+        """The network's grid: the box's node grid, or the voxel grid of its mesh."""
         return self.network.grid
+
+    @property
+    def mesh(self):
+        """The unstructured :class:`TetMesh` the network corrects, None for a box-grid network."""
+        return self.network.mesh
 
     def replay_config(self, **overrides):
         """The :class:`core.simulation.replay.ReplayConfig` of the training simulation."""
         from core.simulation import SimulationConfig, effect_from_dict
         from core.simulation.replay import ReplayConfig
         r = dict(self.replay)
+        element_size = r.get("element_size")  # absent in checkpoints from before STL phantoms
         cfg = ReplayConfig(
             youngs_modulus=float(r["youngs_modulus"]),
             poisson_ratio=float(r["poisson_ratio"]),
             grid=tuple(int(g) for g in r["grid"]),
+            element_size=None if element_size is None else float(element_size),
             law=r["law"],
             simulation=SimulationConfig(**r["simulation"]),
             effects=tuple(effect_from_dict(e) for e in r["effects"]),
@@ -78,6 +97,7 @@ def replay_settings(config) -> dict:
         "youngs_modulus": float(config.youngs_modulus),
         "poisson_ratio": float(config.poisson_ratio),
         "grid": [int(g) for g in config.grid],
+        "element_size": None if config.element_size is None else float(config.element_size),
         "law": config.law,
         "simulation": asdict(config.simulation),
         "effects": [e.to_dict() for e in config.effects],
@@ -115,6 +135,10 @@ def save_checkpoint(path, network: CorrectionNetwork, *, session, replay_config,
         "extra": extra or {},
         "state_dict": network.state_dict(),
     }
+    if network.mesh is not None:
+        blob["mesh"] = _mesh_blob(network.mesh)
+        blob["normalisation"]["positions"] = ("(x - centre)/(size/2) and (x - rest)/bound per axis over the mesh's rest "
+                                              "bounding box, scattered to the voxel grid (core.learning.voxels)")
     tmp = path.with_name(path.name + ".tmp")
     torch.save(blob, tmp)
     tmp.replace(path)
@@ -139,9 +163,31 @@ def load_checkpoint(path) -> Checkpoint:
         got = blob.get("format") if isinstance(blob, dict) else type(blob).__name__
         raise LearningError(f"{path}: expected a {CHECKPOINT_FORMAT!r} checkpoint, got {got!r}")
     try:
-        net = build_network(NetworkConfig.from_json(blob["network"]), blob["grid"], np.asarray(blob["size"]))
+        mesh = _mesh_from_blob(blob["mesh"]) if blob.get("mesh") is not None else None
+        net = build_network(NetworkConfig.from_json(blob["network"]), blob["grid"], np.asarray(blob["size"]), mesh)
         net.load_state_dict(blob["state_dict"])
-    except (KeyError, RuntimeError, TypeError) as exc:
+    except (KeyError, RuntimeError, TypeError, ValueError) as exc:
         raise LearningError(f"{path}: checkpoint does not match its network configuration: {exc}") from exc
     net.eval()
     return Checkpoint(network=net, session=blob["session"], replay=blob["replay"], extra=blob.get("extra", {}))
+
+
+def _mesh_blob(mesh) -> dict:
+    """The arrays of an unstructured mesh as torch tensors (``weights_only`` loadable)."""
+    return {
+        "nodes": torch.tensor(np.asarray(mesh.nodes, dtype=np.float64)),
+        "tets": torch.tensor(np.asarray(mesh.tets, dtype=np.int64)),
+        "surface_triangles": torch.tensor(np.asarray(mesh.surface_triangles, dtype=np.int64)),
+        "size": torch.tensor(np.asarray(mesh.size, dtype=np.float64)),
+    }
+
+
+def _mesh_from_blob(d: dict):
+    """The read-only :class:`TetMesh` (``grid=None``) of :func:`_mesh_blob`'s dict."""
+    from core.simulation.mesh import TetMesh
+
+    arrays = {k: d[k].numpy().copy() for k in ("nodes", "tets", "surface_triangles", "size")}
+    for a in arrays.values():
+        a.flags.writeable = False
+    return TetMesh(nodes=arrays["nodes"], tets=arrays["tets"], surface_triangles=arrays["surface_triangles"], grid=None,
+                   size=arrays["size"])

@@ -192,7 +192,7 @@ def train_and_test(
     for i, name in enumerate(tests):
         f = frames[name]
         no_net[name] = (f.mean_error, int(sum(c.shape[0] for c in f.clouds)))
-        no_net_signed[name] = signed_residual(f.positions, f.clouds, f.grid, prepared.size)
+        no_net_signed[name] = signed_residual(f.positions, f.clouds, f.mesh_or_grid, prepared.size)
         offline[name] = correct_offline(ck, f, factor=replay_config.supersample, size=prepared.size)
         in_loop[name] = replay_in_loop(ck, prepared, name, config=replay_config, session=session, reference=f,
                                        callback=_scaled(callback, 0.85 + 0.15 * i / len(tests), 0.85 + 0.15 * (i + 1) / len(tests), f"in-loop {name} "))
@@ -354,7 +354,7 @@ def evaluate_networks(
         frames = build_frames(prepared, cfg, session=session, callback=_scaled(callback, step / n, (step + 1) / n, f"E {E:g}: replay "))
         baselines[label] = {name: (f.mean_error, int(sum(c.shape[0] for c in f.clouds)))
                             for name, f in frames.items() if f.role == "test"}
-        baselines_signed[label] = {name: signed_residual(f.positions, f.clouds, f.grid, prepared.size)
+        baselines_signed[label] = {name: signed_residual(f.positions, f.clouds, f.mesh_or_grid, prepared.size)
                                    for name, f in frames.items() if f.role == "test"}
         step += 1
         for kind in kinds:

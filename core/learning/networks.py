@@ -1,5 +1,6 @@
 """The correction networks of Wu et al. 2020 (Sec. 3.3, Fig. 3): a 3D UNet over the
 node grid and a 2D UNet over its top layer, with the robot pose joined at the bottleneck.
+On a mesh that is not a grid they run on a voxel grid around it (:mod:`core.learning.voxels`).
 
 Both follow the paper's description (a 3D UNet after Cicek et al. 2016):
 
@@ -109,41 +110,89 @@ class UNet2D(_UNet):
 
 
 class CorrectionNetwork(nn.Module):
-    """Node positions and robot pose -> bounded correction of the top-layer nodes.
+    """Node positions and robot pose -> bounded correction of the observed nodes.
 
     The module owns its input encoding (box size, rest positions, bound) as buffers, so
-    a saved ``state_dict`` with its :class:`NetworkConfig`, grid and box size is all
-    inference needs.
+    a saved ``state_dict`` with its :class:`NetworkConfig`, grid, box size and (for an
+    unstructured mesh) the mesh is all inference needs.
 
-    forward(positions (B, N, 3) m phantom frame, poses (B, 7) [centre m, quaternion xyzw])
-    -> corrections (B, nx*ny, 3) m for the top-layer nodes in (i, j) order, each
-    component within ``[-bound_a, bound_a]``, ``bound = bound_fraction * size / (grid - 1)``.
+    On the box grid (``mesh`` None or a grid mesh) the UNet convolves over the node grid
+    itself (3D) or its top layer (2D) and corrects the top-layer nodes, as in the paper.
+    On an unstructured mesh (``mesh.grid is None``, a ``phantom.stl``) node quantities are
+    scattered to a (nx, ny, nz) voxel grid over the rest bounding box (3D) or to the
+    (nx, ny) footprint from the observed top surface (2D), the UNet runs there with a 7th
+    input channel marking voxels inside the body, and its bounded output is gathered
+    back to the surface nodes above z = 0 by trilinear / bilinear interpolation at their
+    rest positions (:mod:`core.learning.voxels`; the paper's Sec. 6 suggestion).
+
+    forward(positions (B, N, 3) float32 m phantom frame, poses (B, 7) [centre m,
+    quaternion xyzw]) -> corrections (B, K, 3) float32 m for the nodes
+    :attr:`corrected_nodes` ((i, j) order of the top layer on the grid, K = nx*ny), each
+    component within ``[-bound_a, bound_a]``, ``bound = bound_fraction * size / (grid - 1)``
+    (half a node / voxel spacing by default).
     """
 
-    def __init__(self, config: NetworkConfig, grid, size):
+    def __init__(self, config: NetworkConfig, grid, size, mesh=None):
         super().__init__()
+        from core.learning.voxels import top_layer_nodes, voxel_map
         from core.simulation.mesh import box_mesh
 
         self.config = config
         self.grid = tuple(int(g) for g in grid)
-        size = np.asarray(size, dtype=np.float64).reshape(3)
-        mesh = box_mesh(size, self.grid)  # validates grid and size
-        nx, ny, nz = self.grid
-        rest = mesh.nodes.reshape(nx, ny, nz, 3)
+        if mesh is not None and mesh.grid is not None:
+            if tuple(mesh.grid) != self.grid:
+                raise LearningError(f"the grid mesh is {tuple(mesh.grid)}, the network's grid {self.grid}")
+            mesh = None  # the box path: the grid is the mesh
+        self.mesh = mesh  # the unstructured TetMesh the network corrects; None on the box grid
+        Net = UNet3D if config.kind == "3d" else UNet2D
+        if mesh is None:
+            size = np.asarray(size, dtype=np.float64).reshape(3)
+            box = box_mesh(size, self.grid)  # validates grid and size
+            nx, ny, nz = self.grid
+            rest = box.nodes.reshape(nx, ny, nz, 3)
+            self.voxel_map = None
+            self.corrected_nodes = top_layer_nodes(self.grid)
+            in_channels = IN_CHANNELS
+        else:
+            vm = voxel_map(mesh, self.grid, config.kind)
+            size, rest = vm.size, np.asarray(mesh.nodes, dtype=np.float64)
+            self.voxel_map = vm
+            self.corrected_nodes = vm.nodes
+            # derived from the mesh (rebuilt on load), so not in the state_dict
+            self.register_buffer("origin", torch.tensor(vm.origin, dtype=torch.float32), persistent=False)
+            self.register_buffer("scatter", torch.tensor(vm.scatter.toarray(), dtype=torch.float32), persistent=False)
+            self.register_buffer("gather", torch.tensor(vm.gather.toarray(), dtype=torch.float32), persistent=False)
+            self.register_buffer("inside", torch.tensor(vm.inside, dtype=torch.float32), persistent=False)
+            in_channels = IN_CHANNELS + 1
         bound = config.bound_fraction * size / (np.asarray(self.grid) - 1.0)
         self.register_buffer("size", torch.tensor(size, dtype=torch.float32))
         self.register_buffer("rest", torch.tensor(rest, dtype=torch.float32))
         self.register_buffer("bound", torch.tensor(bound, dtype=torch.float32))
-        Net = UNet3D if config.kind == "3d" else UNet2D
-        self.unet = Net(IN_CHANNELS, config.pose_dim, config.widths, config.fusion_convs)
+        self.unet = Net(in_channels, config.pose_dim, config.widths, config.fusion_convs)
 
-    def encode(self, positions: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Network inputs: (B, 6, nx, ny, nz) or (B, 6, nx, ny) node channels and (B, D) pose."""
-        nx, ny, nz = self.grid
-        if positions.ndim != 3 or positions.shape[1:] != (nx * ny * nz, 3):
-            raise LearningError(f"positions must be (B, {nx * ny * nz}, 3) for grid {self.grid}, got {tuple(positions.shape)}")
+    @property
+    def n_nodes(self) -> int:
+        """N, the node count of the positions the network takes."""
+        return int(np.prod(self.grid)) if self.mesh is None else self.mesh.n_nodes
+
+    def _check(self, positions: torch.Tensor, poses: torch.Tensor) -> None:
+        n = self.n_nodes
+        if positions.ndim != 3 or positions.shape[1:] != (n, 3):
+            where = f"grid {self.grid}" if self.mesh is None else f"its {n}-node mesh"
+            raise LearningError(f"positions must be (B, {n}, 3) for {where}, got {tuple(positions.shape)}")
         if poses.ndim != 2 or poses.shape[1] != 7 or poses.shape[0] != positions.shape[0]:
             raise LearningError(f"poses must be ({positions.shape[0]}, 7), got {tuple(poses.shape)}")
+
+    def encode(self, positions: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Network inputs: (B, C, nx, ny, nz) or (B, C, nx, ny) voxel channels and (B, D) pose.
+
+        C = 6 on the box grid (position scaled to [-1, 1] over the box, displacement from
+        rest in units of the bound); C = 7 on an unstructured mesh (the same 6 scattered
+        to the voxels, then the inside mask)."""
+        self._check(positions, poses)
+        if self.mesh is not None:
+            return self._encode_mesh(positions, poses)
+        nx, ny, nz = self.grid
         half = self.size / 2
         g = positions.reshape(-1, nx, ny, nz, 3)
         feats = torch.cat([(g - half) / half, (g - self.rest) / self.bound], dim=-1)  # (B, nx, ny, nz, 6)
@@ -156,22 +205,46 @@ class CorrectionNetwork(nn.Module):
             pose = torch.cat([pose, poses[:, 3:7]], dim=1)
         return feats.contiguous(), pose
 
+    def _encode_mesh(self, positions: torch.Tensor, poses: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        half = self.size / 2
+        centre = self.origin + half
+        node_feats = torch.cat([(positions - centre) / half, (positions - self.rest) / self.bound], dim=-1)  # (B, N, 6)
+        vox = torch.einsum("vn,bnc->bvc", self.scatter, node_feats)  # (B, V, 6); zero outside the body
+        mask = self.inside.reshape(1, -1, 1).expand(vox.shape[0], -1, 1)
+        vox = torch.cat([vox, mask], dim=-1)
+        spatial = self.voxel_map.spatial
+        feats = vox.reshape(vox.shape[0], *spatial, vox.shape[-1]).movedim(-1, 1)
+        pose = (poses[:, :3] - centre) / half
+        if self.config.pose == "position_quaternion":
+            pose = torch.cat([pose, poses[:, 3:7]], dim=1)
+        return feats.contiguous(), pose
+
     def forward(self, positions: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
         x, pose = self.encode(positions, poses)
         out = self.unet(x, pose)
+        if self.mesh is not None:
+            voxels = out.reshape(out.shape[0], 3, -1).transpose(1, 2)  # (B, V, 3)
+            # bound on the voxels, then gather with convex weights: the bound holds at the nodes
+            return torch.einsum("kv,bvc->bkc", self.gather, torch.tanh(voxels) * self.bound)
         if self.config.kind == "3d":
             out = out[..., -1]  # only the top layer is observed, so only it is corrected
         out = out.permute(0, 2, 3, 1).reshape(out.shape[0], -1, 3)
         return torch.tanh(out) * self.bound
 
 
-def build_network(config: NetworkConfig, grid, size) -> CorrectionNetwork:
+def build_network(config: NetworkConfig, grid, size, mesh=None) -> CorrectionNetwork:
     """A freshly initialised :class:`CorrectionNetwork` (seed torch first for repeatability).
 
     Args:
-        config: network shape. grid: (nx, ny, nz) node grid. size: (3,) box size, m.
+        config: network shape. grid: (nx, ny, nz) node grid of the box, or the voxel grid
+            of an unstructured mesh. size: (3,) box size, m (unused with an unstructured
+            ``mesh``: its rest bounding box sets scaling and bound).
+        mesh: optional :class:`core.simulation.mesh.TetMesh`; a grid mesh (which must be
+            on ``grid``) or None gives the box network, one with ``grid is None`` the
+            voxel-mapped network (:mod:`core.learning.voxels`).
 
     Raises:
-        LearningError, SimulationError: bad configuration, grid or size.
+        LearningError, SimulationError: bad configuration, grid or size; a grid mesh on
+            another grid.
     """
-    return CorrectionNetwork(config, grid, size)
+    return CorrectionNetwork(config, grid, size, mesh)

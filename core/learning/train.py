@@ -1,7 +1,8 @@
 """Training of a correction network (Wu et al. 2020, Sec. 3.3 and 5.1).
 
 The network sees the simulated node positions and the robot pose of a frame and
-outputs a bounded correction of the top-layer nodes; the loss is the one-sided Chamfer
+outputs a bounded correction of the top-layer nodes (on an unstructured mesh: of the
+surface nodes above z = 0, through the voxel map of :mod:`core.learning.voxels`); the loss is the one-sided Chamfer
 distance from that frame's cleaned cloud to the corrected, 3x super-sampled mesh
 (:mod:`core.learning.loss`). Adam with a fixed seed; early stopping on the validation
 sequences, keeping the weights of the best validation epoch. Training runs on the CPU.
@@ -19,7 +20,7 @@ import numpy as np
 import torch
 
 from core.learning.config import LearningError, NetworkConfig, TrainConfig
-from core.learning.data import SequenceFrames, top_layer_nodes
+from core.learning.data import SequenceFrames, same_mesh
 from core.learning.loss import chamfer_loss, point_to_mesh_distances_torch, supersample_matrix
 from core.learning.networks import CorrectionNetwork, build_network
 
@@ -137,11 +138,17 @@ class TrainResult:
 
 
 class _LossModel:
-    """Corrected super-sampled surfaces of a batch: ``S x + S_top c``."""
+    """Corrected super-sampled surfaces of a batch: ``S x + S_c c``, with ``S`` (P, N) the
+    metric's super-sampling of the grid or mesh and ``S_c`` its columns of the corrected
+    nodes (the top layer on the box grid, :func:`core.learning.voxels.corrected_nodes`)."""
 
-    def __init__(self, grid, factor: int):
-        S = supersample_matrix(grid, factor)
-        top = top_layer_nodes(grid)
+    def __init__(self, mesh_or_grid, factor: int, nodes: np.ndarray | None = None):
+        from core.learning.voxels import corrected_nodes, top_layer_nodes
+
+        S = supersample_matrix(mesh_or_grid, factor)
+        if nodes is None:
+            nodes = corrected_nodes(mesh_or_grid) if hasattr(mesh_or_grid, "nodes") else top_layer_nodes(mesh_or_grid)
+        top = np.asarray(nodes, dtype=np.int64)
         self.S = torch.tensor(S, dtype=torch.float32)
         self.S_top = torch.tensor(S[:, top], dtype=torch.float32)
 
@@ -180,7 +187,9 @@ def train_correction(
     Args:
         frames: per-sequence arrays from :func:`core.learning.build_frames` (roles
             decide use: "train" to fit, "validation" to stop; "test" is ignored here).
-        size: (3,) phantom box size, m (the mesh's rest shape; sets input scaling and bound).
+        size: (3,) phantom box size, m (the box's rest shape; sets input scaling and
+            bound). On an unstructured mesh (the frames' ``mesh``, a ``phantom.stl``) the
+            mesh's rest bounding box is used instead (:mod:`core.learning.voxels`).
         network_config: network shape (default: the paper's 3D UNet).
         train_config: schedule (default :class:`TrainConfig`).
         callback: ``callback(fraction, message)`` after every batch; the message holds the
@@ -190,7 +199,8 @@ def train_correction(
         :class:`TrainResult`.
 
     Raises:
-        LearningError: no usable train or validation frame, or frames of different grids.
+        LearningError: no usable train or validation frame, or frames of different grids
+            or meshes.
     """
     network_config = network_config or NetworkConfig()
     cfg = train_config or TrainConfig()
@@ -200,6 +210,10 @@ def train_correction(
     if len(grids) != 1:
         raise LearningError(f"all sequences must share one node grid, got {sorted(grids)}")
     grid = grids.pop()
+    meshes = [s.mesh for s in frames if s.unstructured]
+    mesh = meshes[0] if meshes else None
+    if any(not same_mesh(mesh, s.mesh) for s in frames):
+        raise LearningError("all sequences must share one mesh (same phantom, grid and element size)")
     train = [s for s in frames if s.role == "train"]
     if cfg.frame_stride > 1:
         k = int(cfg.frame_stride)
@@ -212,10 +226,10 @@ def train_correction(
         raise LearningError("no 'validation' sequence for early stopping (roles come from session.json)")
     with torch_settings(cfg.threads, cfg.deterministic):
         torch.manual_seed(cfg.seed)
-        net = build_network(network_config, grid, size)
+        net = build_network(network_config, grid, size, mesh)
         gen = torch.Generator().manual_seed(cfg.seed + 1)
         tr, va = FrameSet(train), FrameSet(val)
-        lm = _LossModel(grid, cfg.supersample)
+        lm = _LossModel(grid if mesh is None else mesh, cfg.supersample, net.corrected_nodes)
         val_gen = torch.Generator().manual_seed(cfg.seed + 2)
         val_samples = [
             va.sample_points(torch.arange(b0, min(b0 + cfg.batch_size, len(va))), cfg.max_points, val_gen)
