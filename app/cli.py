@@ -109,6 +109,7 @@ def _replay_config(args):
         youngs_modulus=args.youngs,
         poisson_ratio=args.poisson,
         grid=tuple(args.grid),
+        element_size=getattr(args, "element_size", None),
         simulation=sim,
         effects=effects,
         sequences=tuple(args.sequences) if args.sequences else None,
@@ -229,7 +230,8 @@ def _base_trial(args):
 
     effects = tuple(effect_from_dict(e).to_dict() for e in _parse_effects(getattr(args, "effects", None)))
     sim = SimulationConfig(dt=args.dt) if getattr(args, "dt", None) else SimulationConfig()
-    return Trial(sequence="", youngs_modulus=1.0, poisson_ratio=args.poisson, grid=tuple(args.grid), effects=effects, simulation=sim)
+    return Trial(sequence="", youngs_modulus=1.0, poisson_ratio=args.poisson, grid=tuple(args.grid), effects=effects,
+                 simulation=sim, element_size=getattr(args, "element_size", None))
 
 
 def _parse_youngs(text: str) -> list[float]:
@@ -307,7 +309,10 @@ def _add_model_options(p, *, youngs: bool = True) -> None:
     if youngs:
         p.add_argument("--youngs", type=float, default=5000.0, help="Young's modulus E in Pa (default 5e3, the paper's)")
     p.add_argument("--poisson", type=float, default=0.44, help="Poisson's ratio (default 0.44)")
-    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="node grid (default 13 5 5)")
+    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"),
+                   help="node grid of a box phantom (default 13 5 5)")
+    p.add_argument("--element-size", type=float, default=None, metavar="M",
+                   help="target element size of a phantom given by phantom.stl, m (default: about the paper's 325 nodes)")
     p.add_argument("--dt", type=float, default=None, help="time step in s (default 1/120)")
     p.add_argument("--sequences", nargs="*", default=None, help="sequence names (default: all)")
     p.add_argument("--effects", default=None, help="JSON list of model extensions, e.g. '[{\"kind\": \"gravity\"}]'")

@@ -57,10 +57,17 @@ from core.identification.sweep import PAPER_COARSE
 from core.identification.trials import Trial, run_trial
 from core.identification.verdict import MAX_RATIO, MIN_RISE, widen_interval, youngs_verdict
 from core.preparation import PreparedSession
-from core.simulation.replay import noise_floor
+from core.simulation.replay import noise_floor, replay_mesh
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
 
 Progress = Callable[[float, str], None]
+
+
+def _mean_edge(mesh) -> float:
+    """Mean edge length of a tetrahedral mesh, m."""
+    p = mesh.nodes[mesh.tets]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    return float(np.mean([np.linalg.norm(p[:, b] - p[:, a], axis=1).mean() for a, b in pairs]))
 
 
 def refined_grid(grid) -> tuple[int, int, int]:
@@ -115,6 +122,11 @@ class FitResult:
     """What the identifiability rule compared (``statistic`` of
     :func:`core.identification.verdict.youngs_verdict`, on the replay grid: rises of J a
     decade either side, the interval before the model form and its ratio, Pa)."""
+    element_sizes: tuple[float | None, float] | None = None
+    """For an STL phantom: the replay mesh's target element size (None: the default)
+    and the refined mesh's, m; None for a box (``grid`` and ``refined`` hold its meshes)."""
+    mesh_nodes: tuple[int, int | None] | None = None
+    """Nodes of the replay mesh (and of the refined mesh, when known)."""
 
     def to_json(self) -> dict:
         return {
@@ -123,10 +135,12 @@ class FitResult:
                 "interval": list(self.interval) if self.interval else None,
                 "identifiable": self.identifiable,
                 "reason": self.reason,
-                "grid_value": {"grid": list(self.grid), "value": self.coarse_value},
+                "grid_value": ({"grid": list(self.grid), "value": self.coarse_value} if self.element_sizes is None
+                               else {"element_size": self.element_sizes[0], "value": self.coarse_value}),
                 "refined_value": None
                 if self.refined_value is None
-                else {"grid": list(self.refined), "value": self.refined_value},
+                else ({"grid": list(self.refined), "value": self.refined_value} if self.element_sizes is None
+                      else {"element_size": self.element_sizes[1], "value": self.refined_value}),
                 "interval_sources": {
                     "bootstrap_frames_sequences": list(self.bootstrap_interval) if self.bootstrap_interval else None,
                     "model_form": self.model_form,
@@ -204,7 +218,8 @@ def fit_youngs_modulus(
         raise TissueTwinError("the session has no 'train' sequence to fit on")
     has_force = all(prepared.sequences[n].force is not None for n in names)
     use_force = has_force if use_force is None else (use_force and has_force)
-    d0 = _top_noise(prepared, names, base.grid) if metric == "top" else noise_floor(prepared, base.grid)
+    d0 = (_top_noise(prepared, names, base.grid, base.element_size) if metric == "top"
+          else noise_floor(prepared, base.grid, mesh=replay_mesh(prepared, base.grid, base.element_size)))
     if not np.isfinite(d0) or d0 <= 0:
         d0 = 1e-3
     f0 = _force_noise(prepared, names) if use_force else None
@@ -248,9 +263,16 @@ def fit_youngs_modulus(
     lo_i, hi_i = widen_interval(E_star, (lo_b, hi_b), shift)
 
     refined = refined_grid(base.grid)
+    stl = getattr(prepared, "stl_path", None) is not None
+    coarse_mesh = replay_mesh(prepared, base.grid, base.element_size)
+    sizes = None
+    if stl:  # an STL phantom: refine by halving the element size (Gmsh), as 2 n - 1 halves a grid's
+        h = base.element_size or _mean_edge(coarse_mesh)
+        sizes = (base.element_size, h / 2.0)
     refined_value = None
     if identifiable and refine_mesh:
-        fine = _Objective(prepared, names, replace(base, grid=refined), executor, use_force, d0, f0, progress, metric)
+        fine_base = replace(base, element_size=sizes[1]) if stl else replace(base, grid=refined)
+        fine = _Objective(prepared, names, fine_base, executor, use_force, d0, f0, progress, metric)
         r2 = minimize_scalar(fine, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded", options={"xatol": 0.004})
         refined_value = float(10.0**r2.x)
         obj.evaluations += fine.evaluations
@@ -273,7 +295,9 @@ def fit_youngs_modulus(
 
     scale = (refined_value / E_star) if refined_value else 1.0
     model_form = None
-    if identifiable and use_force:
+    if identifiable and use_force and stl:
+        reason += "; the model-form spread (other laws, Poisson's ratios, grids) is measured on box grids only"
+    elif identifiable and use_force:
         # the interval holds E under other laws, Poisson's ratios and grids (model form)
         from core.identification.model_form import youngs_model_form
 
@@ -293,6 +317,8 @@ def fit_youngs_modulus(
         refined_value=refined_value,
         grid=tuple(base.grid),
         refined=refined,
+        element_sizes=sizes,
+        mesh_nodes=(coarse_mesh.n_nodes, None),
         poisson_ratio=base.poisson_ratio,
         errors=errors,
         profile=[(E, Jv, d, f) for E, Jv, d, f in rows],

@@ -79,13 +79,15 @@ class _Objective:
         return self.terms(E)[0]
 
 
-def _top_noise(prepared: PreparedSession, names, grid) -> float:
-    """RMS signed top residual (m) of rest frames against the rest mesh: its noise level."""
-    from core.identification.residuals import top_residuals
-    from core.simulation import box_mesh
+def _top_noise(prepared: PreparedSession, names, grid, element_size: float | None = None) -> float:
+    """RMS signed residual (m) of rest frames against the rest mesh (the box grid's top
+    face, or any mesh's upward surface): its noise level."""
+    from core.identification.residuals import signed_residuals
+    from core.simulation.replay import replay_mesh
 
-    rest = box_mesh(prepared.size, grid).nodes
-    res = [top_residuals(prepared.sequences[n].clouds[i], rest, grid, prepared.size) for n in names for i in prepared.rest_frames(n)]
+    mesh = replay_mesh(prepared, grid, element_size)
+    res = [signed_residuals(prepared.sequences[n].clouds[i], mesh.nodes, mesh, prepared.size)
+           for n in names for i in prepared.rest_frames(n)]
     res = np.concatenate(res) if res else np.zeros(0)
     return float(np.sqrt(np.mean(res**2))) if res.size > 10 else 1e-3
 

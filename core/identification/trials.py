@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from core.identification.residuals import top_residuals
+from core.identification.residuals import signed_residuals
 from core.simulation import SimulationConfig, effect_from_dict
 from core.preparation import PreparedSession
-from core.simulation.replay import ReplayConfig, replay_sequence
+from core.simulation.replay import ReplayConfig, replay_mesh, replay_sequence
 __all__ = ["Trial", "TrialResult", "run_trial"]
 
 
@@ -21,7 +21,9 @@ class Trial:
     Attributes:
         sequence: sequence name.
         youngs_modulus: Pa. poisson_ratio: -.
-        grid: node grid (nx, ny, nz). law: material law (see ``Material``).
+        grid: node grid (nx, ny, nz) of a box phantom. element_size: target element
+            size of an STL phantom, m (None: its default; see ``ReplayConfig``).
+            law: material law (see ``Material``).
         effects: model extensions as ``{"kind": ..., **parameters}`` dicts (SI, phantom frame).
         simulation: numerical settings.
     """
@@ -32,6 +34,7 @@ class Trial:
     grid: tuple[int, int, int] = (13, 5, 5)
     law: str = "corotational"
     effects: tuple = ()
+    element_size: float | None = None
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
 
     def replay_config(self) -> ReplayConfig:
@@ -39,6 +42,7 @@ class Trial:
             youngs_modulus=self.youngs_modulus,
             poisson_ratio=self.poisson_ratio,
             grid=self.grid,
+            element_size=self.element_size,
             law=self.law,
             simulation=self.simulation,
             effects=tuple(effect_from_dict(dict(e)) for e in self.effects),
@@ -84,7 +88,9 @@ def run_trial(prepared: PreparedSession, trial: Trial) -> TrialResult:
     """Replay ``trial.sequence`` of ``prepared`` with a model built for this trial only."""
     t0 = time.perf_counter()
     seq = prepared.sequences[trial.sequence]
-    r = replay_sequence(prepared, trial.sequence, trial.replay_config())
+    config = trial.replay_config()
+    mesh = replay_mesh(prepared, config.grid, config.element_size)
+    r = replay_sequence(prepared, trial.sequence, config)
     counts = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
     sums = r.frame_errors * counts
     force_sq = None
@@ -96,7 +102,7 @@ def run_trial(prepared: PreparedSession, trial: Trial) -> TrialResult:
     for f, pts in enumerate(seq.clouds):
         if not np.all(np.isfinite(r.simulation.positions[f])):
             continue  # diverged: NaN sum, as the paper's "N/A"
-        res = top_residuals(pts, r.simulation.positions[f], trial.grid, prepared.size)
+        res = signed_residuals(pts, r.simulation.positions[f], mesh, prepared.size)
         top_sq[f], top_n[f] = float(np.sum(res**2)), res.size
     return TrialResult(
         frame_top_sq=top_sq,
