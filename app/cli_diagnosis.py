@@ -13,7 +13,8 @@ def cmd_diagnose(args) -> int:
     from core.identification import executor
 
     config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement,
-                             use_force=False if args.no_force else None, segments=args.segments)
+                             use_force=False if args.no_force else None, segments=args.segments,
+                             element_size=args.element_size)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
         if args.network:
             diag = _diagnose_with_network(args, config, ex, cb)
@@ -126,7 +127,11 @@ def register(sub) -> None:
     p = sub.add_parser("diagnose", help="name what the simulation lacks, extend the model, measure the gain")
     p.add_argument("session")
     p.add_argument("--out", required=True)
-    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"), help="replay grid (default 13 5 5)")
+    p.add_argument("--grid", type=int, nargs=3, default=(13, 5, 5), metavar=("NX", "NY", "NZ"),
+                   help="replay grid of a box phantom (default 13 5 5)")
+    p.add_argument("--element-size", type=float, default=None, metavar="M",
+                   help="target element size of a phantom given by phantom.stl, m (default: about the paper's 325 "
+                        "nodes; the fine mesh halves it)")
     p.add_argument("--no-youngs", action="store_true", help="keep E at 5e3 Pa instead of fitting it with the claimed causes")
     p.add_argument("--no-mesh-refinement", action="store_true", help="fit E on the replay grid only")
     p.add_argument("--no-force", action="store_true",

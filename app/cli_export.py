@@ -13,6 +13,7 @@ FORMATS = ("vtu", "sofa", "mjcf")
 
 def cmd_export(args) -> int:
     from app.export import export_run
+    from app.run_mesh import mesh_label
 
     names = args.sequence or None
     sequence = None
@@ -24,7 +25,7 @@ def cmd_export(args) -> int:
                         youngs=args.youngs, poisson=args.poisson, grid=tuple(args.grid) if args.grid else None,
                         session=args.session)
     twin = result.twin
-    print(f"{twin.kind} {twin.source}: {'x'.join(map(str, twin.grid))} grid, {twin.mesh.n_nodes} nodes, "
+    print(f"{twin.kind} {twin.source}: {mesh_label(twin.mesh)}, {twin.mesh.n_nodes} nodes, "
           f"{twin.mesh.n_tets} tetrahedra, E {twin.youngs_modulus:.4g} Pa ({twin.youngs_source}), "
           f"nu {twin.poisson_ratio:g}, effects: {', '.join(e['kind'] for e in twin.effects) or 'none'}")
     for note in result.notes:
@@ -61,6 +62,7 @@ def register(sub) -> None:
     p.add_argument("--youngs", type=float, default=None, help="override Young's modulus, Pa")
     p.add_argument("--poisson", type=float, default=None, help="override Poisson's ratio (a diagnosis: default 0.44)")
     p.add_argument("--grid", type=int, nargs=3, default=None, metavar=("NX", "NY", "NZ"),
-                   help="node grid of a diagnosis's twin (default 13 5 5; a replay keeps its own)")
+                   help="node grid of a diagnosis's twin of a box (default 13 5 5; a replay keeps its own; "
+                        "an STL phantom has its own mesh)")
     p.add_argument("--session", default=None, help="the session folder, if it moved since the run")
     p.set_defaults(func=cmd_export)

@@ -30,6 +30,21 @@ function esc(s) { return String(s ?? "").replace(/[&<>"]/g, (c) => ({ "&": "&amp
 function say(el, text, isError) { el.textContent = text; el.className = "message" + (isError ? " error" : ""); }
 function mm(m) { return m === null || m === undefined ? "N/A" : (m * 1e3).toFixed(4); }
 
+// The replayed mesh in words, from a job's summary or the viewer's state: an STL phantom's
+// Gmsh mesh ({kind: "stl", nodes, tets[, element_size]}) or a box's node grid ({kind: "box",
+// grid, ...}, or a bare `grid` of an older summary); "" when neither is known.
+function meshText(mesh, grid) {
+  const m = mesh || {};
+  if (m.kind === "stl") {
+    const h = Number(m.element_size) > 0 ? `, element size ${(m.element_size * 1e3).toFixed(2)} mm` : "";
+    return `STL phantom: Gmsh mesh, ${m.nodes ?? "?"} nodes, ${m.tets ?? "?"} tetrahedra${h}`;
+  }
+  const g = Array.isArray(m.grid) ? m.grid : grid;
+  if (!Array.isArray(g) || g.length !== 3) return "";
+  const [a, b, c] = g.map(Number);
+  return `box: ${g.join("x")} node grid, ${m.nodes ?? a * b * c} nodes, ${m.tets ?? 6 * (a - 1) * (b - 1) * (c - 1)} tetrahedra`;
+}
+
 // ---------------------------------------------------------------- sessions
 async function loadSessions() {
   sessions = await api("GET", "/api/sessions");
@@ -208,7 +223,8 @@ async function showResult(id) {
   } else if (j.type === "replay" && j.status === "done") {
     out.push(`<table id="replay-table"><thead><tr><th>sequence</th><th>role</th><th>frames</th><th>status</th><th>mean error (mm)</th></tr></thead><tbody>` +
       Object.entries(r.sequences || {}).map(([n, s]) => `<tr><td>${n}</td><td>${s.role}</td><td class="num">${s.frames}</td><td>${s.status}</td><td class="num">${mm(s.mean_error)}</td></tr>`).join("") +
-      `</tbody></table><p class="muted">noise floor ${mm(r.noise_floor)} mm; camera ICP rms ${mm((r.calibration || {}).camera_rms)} mm</p>
+      `</tbody></table><p class="muted" id="replay-mesh" data-kind="${esc((r.mesh || {}).kind || (r.grid ? "box" : ""))}">${esc(meshText(r.mesh, r.grid))}</p>
+      <p class="muted">noise floor ${mm(r.noise_floor)} mm; camera ICP rms ${mm((r.calibration || {}).camera_rms)} mm</p>
       <button class="view-btn" onclick="showInViewer(${id})">show in 3D viewer</button>`);
   } else if (j.type === "train" && j.status === "done") {
     out.push(lossPlot(r.losses || [], r.best_epoch, r.baseline_loss || {}));
@@ -217,7 +233,7 @@ async function showResult(id) {
       <tr><td>no network</td><td class="num">${mm(te.no_network)}</td><td></td></tr>
       <tr><td>corrected in the loop</td><td class="num">${mm(te.corrected)}</td><td class="num">${pct(r.improvement)}</td></tr>
       <tr><td>corrected offline</td><td class="num">${mm(te.corrected_offline)}</td><td class="num">${pct(r.improvement_offline)}</td></tr>
-      </tbody></table><p class="muted">best epoch ${r.best_epoch} of ${(r.losses || []).length}${r.stopped_early ? " (stopped early)" : ""}; cf. Wu et al. 2020, Table 3</p>`);
+      </tbody></table><p class="muted">best epoch ${r.best_epoch} of ${(r.losses || []).length}${r.stopped_early ? " (stopped early)" : ""}; cf. Wu et al. 2020, Table 3${r.mesh ? `; ${esc(meshText(r.mesh))}` : ""}</p>`);
     if (r.viewer) out.push(`<button class="view-btn" onclick="showInViewer(${id})">show the corrected mesh in 3D (${Object.entries(r.corrected_shown || {}).map(([n, m]) => `${esc(n)}: ${m.replace("_", "-")}`).join(", ")})</button>`);
   } else if (j.type === "evaluate" && j.status === "done") {
     out.push(evaluationTable(r));
@@ -399,7 +415,8 @@ async function setupViewer() {
 async function showInViewer(id) {
   try {
     const st = await api("POST", "/api/viewer/show", { job_id: id, tab: viewerTab });
-    $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames, layers ${(st.layers || []).join(", ")} (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
+    const mesh = meshText(st.mesh);
+    $("#viewer-status").textContent = `run ${st.run_id}, ${st.sequence}: ${st.n_frames} frames${mesh ? `, ${mesh}` : ""}, layers ${(st.layers || []).join(", ")} (loaded in ${st.first_frame_seconds.toFixed(2)} s)`;
     $("#viewer").scrollIntoView();
   } catch (e) { $("#viewer-status").textContent = e.message; }
 }

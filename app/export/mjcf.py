@@ -117,7 +117,7 @@ def mjcf_xml(twin, *, probe_centre=None, max_groups: int = 8, timestep: float | 
     kinds = ", ".join(e["kind"] for e in twin.effects) or "none"
     comment = f"""Tissue Twin calibrated twin, written by tissuetwin export (format mjcf).
   Source: {twin.source} ({twin.kind}); session: {twin.session}.
-  SI units, phantom frame (box [0, size], z up, bottom at z = 0). Effects: {kinds}.
+  SI units, phantom frame ({'box [0, size]' if twin.grid is not None else 'of phantom.stl'}, z up, bottom at z = 0). Effects: {kinds}.
   E {twin.youngs_modulus:.6g} Pa, nu {twin.poisson_ratio:.4g}, density {twin.density:.6g} kg/m^3, mass {twin.mass:.6g} kg;
   lumped node masses as in the replay; Rayleigh beta {twin.rayleigh_stiffness:g} s as flex damping
   (alpha {twin.rayleigh_mass:g} 1/s has no MuJoCo counterpart on flex vertex bodies).

@@ -6,17 +6,22 @@ Two kinds of RUN are understood:
 
 - a **replay** (``tissuetwin replay``, :func:`core.simulation.replay.write_replay`):
   ``replay.json`` gives E, Poisson's ratio, the grid, the effects and the session;
-  ``<sequence>.npz`` the node trajectories, probe centres, forces and per-frame errors;
+  ``<sequence>.npz`` the node trajectories, probe centres, forces and per-frame errors
+  (and, for a phantom given by ``phantom.stl``, the replayed mesh itself);
 - a **diagnosis** (``tissuetwin diagnose``, ``diagnosis.json`` of ``SESSION_FORMAT.md``):
   the calibrated model is the base model plus ``extended.effects`` at the reported
   Young's modulus; it has no trajectories, and its probe paths are the sessions'
   kinematics through the robot calibration (corner touches) and the claimed input effects.
 
-The mesh is the replay's own (:func:`core.simulation.mesh.box_mesh` of the session's
-phantom size and the grid); the fixed nodes, supports, per-element moduli and body
+The mesh is the replay's own: :func:`core.simulation.mesh.box_mesh` of the session's
+phantom size and the grid for a box; for an STL phantom the Gmsh mesh the replay stored in
+its npz (``rest_nodes``, ``tets``; :func:`app.run_mesh.npz_mesh`), and for a diagnosis of
+one :func:`core.simulation.meshing.phantom_mesh` of the session's ``phantom.stl`` at the
+default element size (the grid does not apply). The fixed nodes, supports, per-element moduli and body
 forces come from the effects' own ``configure`` hooks on a
 :class:`core.simulation.model.ModelBuilder`, so every exporter sees exactly the model the
-replay simulates. All quantities SI, phantom frame (box ``[0, size]``, z up, bottom at z = 0).
+replay simulates. All quantities SI, phantom frame (box ``[0, size]`` or the STL's frame,
+z up, bottom at z = 0).
 """
 
 from __future__ import annotations
@@ -73,7 +78,8 @@ class Twin:
         kind: "replay", "diagnosis" or "parameters" (built by :func:`build_twin`).
         source: the RUN folder (None for "parameters").
         session: the session folder the run replayed (None if unknown).
-        mesh: the :class:`core.simulation.mesh.TetMesh` (rest shape).
+        mesh: the :class:`core.simulation.mesh.TetMesh` (rest shape; ``grid`` None for an
+            STL phantom's mesh).
         mass: phantom mass, kg. density: mass / mesh volume, kg/m^3.
         youngs_modulus: bulk E, Pa. poisson_ratio: nu.
         element_youngs: (E,) Pa, each element's modulus (an inclusion raises some).
@@ -113,8 +119,9 @@ class Twin:
     youngs_source: str = ""
 
     @property
-    def grid(self) -> tuple[int, int, int]:
-        return tuple(self.mesh.grid)
+    def grid(self) -> tuple[int, int, int] | None:
+        """(nx, ny, nz) of a box grid, None for an STL phantom's mesh."""
+        return None if self.mesh.grid is None else tuple(self.mesh.grid)
 
     def effect_objects(self) -> list:
         from core.simulation import effect_from_dict
@@ -145,7 +152,9 @@ class Twin:
             "source": None if self.source is None else str(self.source),
             "session": None if self.session is None else str(self.session),
             "frame": "phantom frame, m, z up, bottom face at z = 0",
-            "grid": list(self.grid), "nodes": int(self.mesh.n_nodes), "tetrahedra": int(self.mesh.n_tets),
+            "grid": None if self.grid is None else list(self.grid),
+            **({} if self.grid is not None else {"mesh": {"kind": "stl", "mesher": "gmsh"}}),
+            "nodes": int(self.mesh.n_nodes), "tetrahedra": int(self.mesh.n_tets),
             "size_m": [float(v) for v in self.mesh.size],
             "youngs_modulus_pa": self.youngs_modulus, "youngs_modulus_from": self.youngs_source,
             "element_youngs_range_pa": [float(self.element_youngs.min()), float(self.element_youngs.max())],
@@ -162,12 +171,15 @@ class Twin:
 
 def build_twin(size, mass: float, youngs_modulus: float, poisson_ratio: float = 0.44, grid=(13, 5, 5),
                effects=(), *, probe_radius: float = 0.005, sequences: dict | None = None, kind: str = "parameters",
-               source: Path | None = None, session: Path | None = None, youngs_source: str = "given") -> Twin:
-    """The twin of a box phantom from its parameters.
+               source: Path | None = None, session: Path | None = None, youngs_source: str = "given",
+               mesh=None) -> Twin:
+    """The twin of a phantom from its parameters: a box, or any ``mesh``.
 
     Args:
         size: (3,) box size, m. mass: kg. youngs_modulus: Pa. poisson_ratio: nu.
         grid: (nx, ny, nz) nodes (the replay's mesh, :func:`core.simulation.box_mesh`).
+        mesh: the :class:`core.simulation.mesh.TetMesh` to use instead of the box of
+            ``size`` and ``grid`` (an STL phantom's), or None.
         effects: effect dicts of ``SESSION_FORMAT.md`` (or :class:`core.simulation.Effect`).
         probe_radius: the session's radius, m (a probe_radius effect overrides it).
         sequences: {name: :class:`Trajectory`}.
@@ -179,7 +191,7 @@ def build_twin(size, mass: float, youngs_modulus: float, poisson_ratio: float = 
     from core.simulation.model import ModelBuilder
 
     objs = [e if isinstance(e, Effect) else effect_from_dict(e) for e in effects]
-    mesh = box_mesh(size, grid)
+    mesh = box_mesh(size, grid) if mesh is None else mesh
     Material(youngs_modulus, poisson_ratio)  # validates E and nu
     builder = ModelBuilder(mesh, float(mass))
     for e in objs:
@@ -213,7 +225,8 @@ def load_run(run, *, youngs: float | None = None, poisson: float | None = None, 
         run: a folder with ``replay.json`` (and its ``<sequence>.npz``) or ``diagnosis.json``
             (or the path of either file).
         youngs, poisson, grid: override E (Pa), nu and the node grid (a replay's npz
-            trajectories need its own grid).
+            trajectories need its own grid; an STL phantom has no grid and ignores a
+            diagnosis's).
         session: the session folder, when the one the run names has moved.
         sequences: names to keep (default all).
 
@@ -281,20 +294,53 @@ def _load_replay(folder: Path, youngs, poisson, grid, session, wanted) -> Twin:
         run_grid = tuple(int(g) for g in data["grid"])
         effects = list(data.get("effects") or [])
         seqs = dict(data["sequences"])
-    except (KeyError, TypeError, ValueError) as exc:
+        stl = (data.get("mesh") or {}).get("kind") == "stl"
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise TissueTwinError(f"{p}: not a replay.json of `tissuetwin replay` ({exc!r} missing or malformed)") from exc
+    if stl and grid is not None:
+        raise TissueTwinError(f"{p}: the replay's phantom is given by phantom.stl (an unstructured mesh); --grid "
+                              f"{tuple(grid)} applies to box phantoms only")
     if grid is not None and tuple(grid) != run_grid:
         raise TissueTwinError(f"{p}: the replay's trajectories are on the {run_grid} grid; --grid {tuple(grid)} "
                               f"cannot be used with them")
     sess, sess_path = _session_of(p, data, session)
     meta = sess.meta
+    mesh = _replay_stl_mesh(folder, p, data, list(seqs), sess) if stl else None
     trajectories = {}
-    n_nodes = run_grid[0] * run_grid[1] * run_grid[2]
+    n_nodes = run_grid[0] * run_grid[1] * run_grid[2] if mesh is None else mesh.n_nodes
     for name in _selected(p, list(seqs), wanted):
         trajectories[name] = _read_npz(folder / f"{name}.npz", str(seqs[name].get("role", "")), n_nodes)
     return build_twin(meta.phantom.size, meta.phantom.mass, E, nu, run_grid, effects,
                       probe_radius=meta.probe.radius, sequences=trajectories, kind="replay", source=folder,
-                      session=sess_path, youngs_source="--youngs" if youngs is not None else "replay.json")
+                      session=sess_path, youngs_source="--youngs" if youngs is not None else "replay.json", mesh=mesh)
+
+
+def _replay_stl_mesh(folder: Path, p: Path, data: dict, names: list[str], sess):
+    """The mesh an STL phantom's replay ran on: stored in its first sequence's npz
+    (:func:`app.run_mesh.npz_mesh`), else (an npz without it) the session's
+    ``phantom.stl`` meshed again at the replay's element size, which must give the node
+    count ``replay.json`` states."""
+    from app.run_mesh import npz_mesh
+    from core.simulation.meshing import phantom_mesh
+
+    info = data.get("mesh") or {}
+    for name in names[:1]:
+        f = folder / f"{name}.npz"
+        try:
+            with np.load(f) as z:
+                mesh = npz_mesh(z, f)
+        except (OSError, ValueError) as exc:
+            raise TissueTwinError(f"{f}: not a readable npz of `tissuetwin replay` ({exc})") from exc
+        if mesh is not None:
+            return mesh
+    if sess.phantom_stl is None:
+        raise TissueTwinError(f"{p}: replayed an STL phantom, but its npz files hold no mesh and its session "
+                              f"{sess.path} has no phantom.stl")
+    mesh = phantom_mesh(sess.meta.phantom.size, sess.phantom_stl, element_size=info.get("element_size"))
+    if info.get("nodes") is not None and int(info["nodes"]) != mesh.n_nodes:
+        raise TissueTwinError(f"{p}: replayed a {info['nodes']}-node mesh; {sess.phantom_stl} meshes to "
+                              f"{mesh.n_nodes} nodes now (the STL or the mesher changed)")
+    return mesh
 
 
 def _read_npz(f: Path, role: str, n_nodes: int) -> Trajectory:
@@ -311,7 +357,7 @@ def _read_npz(f: Path, role: str, n_nodes: int) -> Trajectory:
     t, x = arrays["times"].astype(np.float64), arrays["positions"].astype(np.float64)
     F = t.size
     if x.shape != (F, n_nodes, 3):
-        raise TissueTwinError(f"{f}: positions are {x.shape}, expected ({F}, {n_nodes}, 3) for the replay's grid")
+        raise TissueTwinError(f"{f}: positions are {x.shape}, expected ({F}, {n_nodes}, 3) for the replay's mesh")
     return Trajectory(name=f.stem, role=role, times=t, positions=x,
                       frame_errors=arrays["frame_errors"].astype(np.float64).reshape(F),
                       probe_centres=arrays["probe_centres"].astype(np.float64).reshape(F, 3),
@@ -363,22 +409,33 @@ def _load_diagnosis(folder: Path, youngs, poisson, grid, session, wanted) -> Twi
         raise TissueTwinError(f"{p}: extended.effects must be a list of effect objects with a 'kind'")
     sess, sess_path = _session_of(p, data, session)
     meta = sess.meta
+    mesh = None
+    if sess.phantom_stl is not None:  # the diagnosis replayed the STL's mesh at its default element size
+        from core.simulation.meshing import phantom_mesh
+
+        mesh = phantom_mesh(meta.phantom.size, sess.phantom_stl)
     twin = build_twin(meta.phantom.size, meta.phantom.mass, E, poisson if poisson is not None else defaults.poisson_ratio,
                       use_grid, effects, probe_radius=meta.probe.radius, kind="diagnosis", source=folder,
-                      session=sess_path, youngs_source=source)
+                      session=sess_path, youngs_source=source, mesh=mesh)
     paths = _calibrated_paths(sess, twin, _selected(p, list(sess.sequences), wanted), defaults.path_smoothing)
     return replace(twin, sequences=paths)
 
 
 def _calibrated_paths(sess, twin: Twin, names: list[str], smoothing: float) -> dict:
     """{name: Trajectory} of the probe centres at the camera frames: the kinematics
-    through the robot calibration (Kabsch on the corner touches), smoothed as a replay
-    does, with the twin's input effects (time, kinematic and radius offsets) applied."""
+    through the robot calibration (Kabsch on the corner touches, or on the landmark
+    touches when the session has them), smoothed as a replay does, with the twin's input
+    effects (time, kinematic and radius offsets) applied."""
     from core.preparation.probe import ProbePath
     from core.registration import calibrate_robot
 
     meta = sess.meta
-    T = calibrate_robot(sess.corners, meta.phantom.size, meta.probe.radius).T
+    if sess.landmark_touches is not None:
+        from core.preparation import calibrate_robot_on_landmarks
+
+        T = calibrate_robot_on_landmarks(sess).T
+    else:
+        T = calibrate_robot(sess.corners, meta.phantom.size, meta.probe.radius).T
     out = {}
     for name in names:
         seq = sess.sequences[name]

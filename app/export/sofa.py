@@ -72,7 +72,7 @@ def _list(a, per_line: int = 1) -> str:
 _TEMPLATE = '''"""SOFA scene of a Tissue Twin calibrated twin, written by `tissuetwin export --format sofa`.
 
 Source: {source} ({kind}); session: {session}.
-Units SI (m, kg, s, Pa, N), phantom frame (box [0, size], z up, bottom face at z = 0).
+Units SI (m, kg, s, Pa, N), phantom frame ({frame}, z up, bottom face at z = 0).
 Model: corotational linear tetrahedral FEM (TetrahedronFEMForceField method="large"),
 implicit Euler with Rayleigh damping, lumped mass, {base}.
 Effects of the calibrated model: {effects}
@@ -207,6 +207,7 @@ def scene_source(twin, probe_path: str | None = "probe_path.csv") -> str:
     notes = "".join(f"Note: {n}.\n" for n in twin.notes)
     return _TEMPLATE.format(
         source=twin.source, kind=twin.kind, session=twin.session, base=base,
+        frame="box [0, size]" if twin.grid is not None else "of phantom.stl",
         effects=", ".join(kinds) if kinds else "none (the paper's base model)", notes=notes,
         E=float(twin.youngs_modulus), nu=float(twin.poisson_ratio),
         element_youngs=_list(scale, 6) if heterogeneous else "None",

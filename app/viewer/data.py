@@ -75,23 +75,32 @@ class SequenceArrays:
 class RunArrays:
     """A replay run: its label and sequences; ``diagnosis``: a diagnose run's ``view.json``
     (answers per kind, claimed causes and their geometry; :mod:`app.viewer.diagnosis_data`),
-    else None."""
+    else None; ``mesh``: the replayed mesh's :func:`app.run_mesh.mesh_summary` (kind "box"
+    or "stl", grid, node and tet counts), or None for a run without sequences."""
 
     label: str
     sequences: dict[str, SequenceArrays]
     diagnosis: dict | None = None
+    mesh: dict | None = None
 
 
-def vertex_errors(positions: np.ndarray, grid, clouds, factor: int = 3) -> np.ndarray:
+def vertex_errors(positions: np.ndarray, mesh_or_grid, clouds, factor: int = 3) -> np.ndarray:
     """Per-node error of every frame (see the module docstring).
 
     Args:
-        positions: (F, N, 3) node positions, m. grid: (nx, ny, nz).
+        positions: (F, N, 3) node positions, m.
+        mesh_or_grid: the replay's :class:`core.simulation.mesh.TetMesh` (a box grid or an
+            STL phantom's Gmsh mesh), or a box grid (nx, ny, nz). The paper's metric is
+            :func:`core.simulation.metrics.supersampled_surface` of it (the grid's
+            trilinear super-sampling on a box, the surface triangles' otherwise).
         clouds: F arrays (M_f, 3) of measured points, m.
         factor: super-sampling of the paper's metric.
 
     Returns:
         (F, N) float32, m; NaN for nodes without points and for diverged frames.
+
+    Raises:
+        ValueError: ``positions`` is not (F, N, 3) for the mesh's N nodes.
     """
     from scipy.spatial import cKDTree
 
@@ -99,14 +108,19 @@ def vertex_errors(positions: np.ndarray, grid, clouds, factor: int = 3) -> np.nd
     from core.simulation.metrics import point_to_mesh_distances, supersampled_surface
 
     F, N, _ = positions.shape
-    grid = tuple(int(g) for g in grid)
-    surface = box_mesh(np.ptp(positions[0], axis=0) if F else np.ones(3), grid).surface_nodes
+    if isinstance(mesh_or_grid, (tuple, list, np.ndarray)):
+        metric = tuple(int(g) for g in mesh_or_grid)
+        surface = box_mesh(np.ptp(positions[0], axis=0) if F else np.ones(3), metric).surface_nodes
+    else:
+        metric, surface = mesh_or_grid, mesh_or_grid.surface_nodes
+        if N != mesh_or_grid.n_nodes:
+            raise ValueError(f"positions must be (F, {mesh_or_grid.n_nodes}, 3) for this mesh, got {positions.shape}")
     out = np.full((F, N), np.nan, dtype=np.float32)
     for f in range(F):
         pts = np.asarray(clouds[f], dtype=np.float64)
         if pts.shape[0] == 0 or not np.all(np.isfinite(positions[f])):
             continue
-        d = point_to_mesh_distances(pts, supersampled_surface(positions[f], grid, factor))
+        d = point_to_mesh_distances(pts, supersampled_surface(positions[f], metric, factor))
         _, idx = cKDTree(positions[f][surface]).query(pts)
         nodes = surface[idx]
         sums = np.bincount(nodes, weights=d, minlength=N)
@@ -130,7 +144,7 @@ def write_viewer_arrays(prepared, result, out: str | Path) -> Path:
     """
     folder = Path(out) / VIEWER_DIR
     folder.mkdir(parents=True, exist_ok=True)
-    grid = tuple(result.config.grid)
+    mesh = result.mesh if result.mesh is not None else tuple(result.config.grid)  # the box grid for older results
     for name, s in result.sequences.items():
         clouds = prepared.sequences[name].clouds
         offsets = np.concatenate([[0], np.cumsum([c.shape[0] for c in clouds])]).astype(np.int64)
@@ -139,7 +153,7 @@ def write_viewer_arrays(prepared, result, out: str | Path) -> Path:
             folder / f"{name}.npz",
             cloud_points=points,
             cloud_offsets=offsets,
-            vertex_error=vertex_errors(s.simulation.positions, grid, clouds, result.config.supersample),
+            vertex_error=vertex_errors(s.simulation.positions, mesh, clouds, result.config.supersample),
             probe_radius=np.float64(prepared.probe_radius),
             role=np.str_(s.role),
         )
@@ -149,26 +163,37 @@ def write_viewer_arrays(prepared, result, out: str | Path) -> Path:
 def load_run(folder: str | Path, label: str = "") -> RunArrays:
     """Read a replay run folder (``replay.json``, ``<seq>.npz``, ``viewer/<seq>.npz``).
 
-    A folder ``corrected/<seq>.npz`` with ``positions`` (F, N, 3) (and optionally
-    ``vertex_error``), written by a correcting analysis, adds the corrected mesh; a folder
-    ``diagnosis/`` (a diagnose job's) adds the diagnosis layers.
+    The faces are the replayed mesh's surface triangles: an STL phantom's from the npz
+    (:func:`app.run_mesh.npz_mesh`), a box's from its grid. A folder ``corrected/<seq>.npz``
+    with ``positions`` (F, N, 3) (and optionally ``vertex_error``), written by a correcting
+    analysis, adds the corrected mesh; a folder ``diagnosis/`` (a diagnose job's) adds the
+    diagnosis layers.
 
     Raises:
         FileNotFoundError: the folder is not a replay run with viewer arrays.
+        ValueError, TissueTwinError: an npz whose positions or mesh arrays do not fit.
     """
+    from app.run_mesh import mesh_summary, npz_mesh
     from app.viewer.diagnosis_data import load_diagnosis_layers, load_diagnosis_view
     from core.simulation.mesh import box_mesh
 
     folder = Path(folder)
     meta = json.loads((folder / "replay.json").read_text())
     sequences = {}
+    summary = None
     for name in meta["sequences"]:
         raw = np.load(folder / f"{name}.npz")
         view = np.load(folder / VIEWER_DIR / f"{name}.npz")
         positions = raw["positions"].astype(np.float32)
-        grid = tuple(int(g) for g in raw["grid"])
-        size = np.ptp(positions[0], axis=0) if positions.shape[0] else np.ones(3)
-        faces = box_mesh(size, grid).surface_triangles.astype(np.uint32)
+        mesh = npz_mesh(raw, folder / f"{name}.npz")
+        if mesh is None:  # a box: its grid
+            size = np.ptp(positions[0], axis=0) if positions.shape[0] else np.ones(3)
+            mesh = box_mesh(size, tuple(int(g) for g in raw["grid"]))
+        if positions.shape[1] != mesh.n_nodes:
+            raise ValueError(f"{folder / f'{name}.npz'}: positions {positions.shape} do not fit its mesh of "
+                             f"{mesh.n_nodes} nodes")
+        faces = mesh.surface_triangles.astype(np.uint32)
+        summary = summary or mesh_summary(mesh)
         corrected = corrected_err = None
         cpath = folder / "corrected" / f"{name}.npz"
         if cpath.exists():
@@ -191,7 +216,8 @@ def load_run(folder: str | Path, label: str = "") -> RunArrays:
             corrected_vertex_error=corrected_err,
             diagnosis=load_diagnosis_layers(folder, name),
         )
-    return RunArrays(label=label or folder.name, sequences=sequences, diagnosis=load_diagnosis_view(folder))
+    return RunArrays(label=label or folder.name, sequences=sequences, diagnosis=load_diagnosis_view(folder),
+                     mesh=summary)
 
 
 def run_label(job_type: str, folder: str | Path, session: str, result: dict | None = None) -> str:

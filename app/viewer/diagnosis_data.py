@@ -184,7 +184,9 @@ def write_diagnosis_run(prepared, summary: dict, grid, youngs: float, folder) ->
     Args:
         prepared: the ``core.preparation.PreparedSession`` the diagnosis used.
         summary: the diagnosis's JSON (``Diagnosis.to_json()``).
-        grid: (nx, ny, nz) the replay grid. youngs: Young's modulus of the replays, Pa.
+        grid: (nx, ny, nz) the replay grid of a box (an STL phantom is replayed on its
+            Gmsh mesh, whose surface and metric the layers then use). youngs: Young's
+            modulus of the replays, Pa.
         folder: where to write (created).
 
     Returns:
@@ -192,7 +194,6 @@ def write_diagnosis_run(prepared, summary: dict, grid, youngs: float, folder) ->
     """
     from app.viewer.data import vertex_errors, write_viewer_arrays
     from core.simulation import effect_from_dict
-    from core.simulation.mesh import box_mesh
     from core.simulation.replay import ReplayConfig, replay, write_replay
 
     folder = Path(folder)
@@ -214,16 +215,17 @@ def write_diagnosis_run(prepared, summary: dict, grid, youngs: float, folder) ->
     if effects:
         (folder / "corrected").mkdir(exist_ok=True)
     size = None
+    mesh = result.mesh  # the box grid of the session's size, or the STL phantom's mesh
+    faces = mesh.surface_triangles
     for name in tests:
         base_pos = result.sequences[name].simulation.positions
         size = np.ptp(base_pos[0], axis=0)
-        faces = box_mesh(size, tuple(grid)).surface_triangles
         clouds = prepared.sequences[name].clouds
         arrays = {"base_residual": _time_mean(signed_residuals(base_pos, faces, clouds))}
         if extended is not None:
             ext = extended[name]
             np.savez_compressed(folder / "corrected" / f"{name}.npz", positions=ext,
-                                vertex_error=vertex_errors(ext, grid, clouds, base.supersample), mode=np.str_("extended"))
+                                vertex_error=vertex_errors(ext, mesh, clouds, base.supersample), mode=np.str_("extended"))
             arrays["extended_residual"] = _time_mean(signed_residuals(ext, faces, clouds))
             for kind, pos in alone.items():
                 arrays[f"change_{kind}"] = _normal_change(base_pos, pos[name], faces)

@@ -7,7 +7,10 @@ centre, as ``plan.json``'s ``path_phantom``); ``contact`` (K,) whether the spher
 or presses the rest phantom there (``core.lab.probing.penetration_depth`` > 0); the
 ``moves`` with the index where each first touches (``start``), their names and
 descriptions; the plan's ``description`` lines, ``targets``, ``predicted`` and
-``current`` sizes with their units, and ``record_force``.
+``current`` sizes with their units, and ``record_force``. A phantom given by
+``phantom.stl`` adds its rest ``surface`` (``vertices`` (V, 3) m, ``faces`` (T, 3)), which
+the viewer draws instead of the box ``[0, size]``, and its contact flags are measured
+against that surface.
 """
 
 from __future__ import annotations
@@ -22,21 +25,45 @@ __all__ = ["PLAN_VIEW", "plan_view", "write_plan_view", "load_plan_view"]
 PLAN_VIEW = "plan_view.json"
 
 
-def plan_view(plan, size, radius: float) -> dict:
+def _stl_penetration(surface, centres: np.ndarray, radius: float) -> np.ndarray:
+    """(K,) how deep a sphere of ``radius`` at ``centres`` (K, 3) reaches into the closed
+    ``surface`` (a ``trimesh.Trimesh``), m: ``radius`` plus the centre's signed distance
+    (trimesh's sign: positive inside), as :func:`core.lab.probing.penetration_depth` is for
+    the box."""
+    import trimesh
+
+    if centres.shape[0] == 0:
+        return np.zeros(0)
+    return radius + np.asarray(trimesh.proximity.signed_distance(surface, centres), float)
+
+
+def plan_view(plan, size, radius: float, stl=None) -> dict:
     """The viewer's description of ``plan`` (module docstring).
 
     Args:
         plan: a ``core.diagnosis.planner.Plan``. size: (3,) the phantom's rest size, m.
         radius: the probe sphere's radius, m.
+        stl: the session's ``phantom.stl`` (the rest surface), or None for a box.
 
     Returns:
         the ``plan_view.json`` dict.
+
+    Raises:
+        MeshingError: ``stl`` is not a usable phantom surface
+            (:func:`core.simulation.meshing.check_stl`).
     """
     from core.lab.probing import penetration_depth
     from core.simulation.effects import EFFECT_KINDS
 
-    centres = np.asarray(plan.path_phantom, float)
-    contact = penetration_depth(centres, size, radius) > 0.0
+    centres = np.asarray(plan.path_phantom, float).reshape(-1, 3)
+    surface = None
+    if stl is None:
+        contact = penetration_depth(centres, size, radius) > 0.0
+    else:
+        from core.simulation.meshing import check_stl
+
+        surface = check_stl(stl)
+        contact = _stl_penetration(surface, centres, float(radius)) > 0.0
     # each move's first touch, in path order: moves are pressed one after the other
     touches = np.flatnonzero(contact & ~np.concatenate([[False], contact[:-1]]))
     moves = []
@@ -57,13 +84,16 @@ def plan_view(plan, size, radius: float) -> dict:
         "current": dict(plan.current),
         "units": units,
         "record_force": bool(plan.record_force),
+        **({} if surface is None else {"surface": {"vertices": np.asarray(surface.vertices, float).tolist(),
+                                                   "faces": np.asarray(surface.faces, int).tolist()}}),
     }
 
 
-def write_plan_view(plan, size, radius: float, out) -> Path:
-    """Write ``plan_view.json`` into the folder ``out``; returns its path."""
+def write_plan_view(plan, size, radius: float, out, stl=None) -> Path:
+    """Write ``plan_view.json`` (:func:`plan_view`; ``stl``: the session's ``phantom.stl``
+    or None) into the folder ``out``; returns its path."""
     path = Path(out) / PLAN_VIEW
-    path.write_text(json.dumps(plan_view(plan, size, radius), indent=1))
+    path.write_text(json.dumps(plan_view(plan, size, radius, stl), indent=1))
     return path
 
 

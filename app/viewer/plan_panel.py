@@ -1,6 +1,7 @@
 """The viewer's Plan tab (issue 19, item 4): a palpation plan drawn over the phantom.
 
-The phantom's rest box (translucent), the probe path of the plan (the sphere's centre;
+The phantom's rest shape (translucent: the box, or the surface of ``phantom.stl`` when
+the plan view carries one), the probe path of the plan (the sphere's centre;
 orange where the sphere touches or presses the phantom, grey in free space), a numbered
 label at each move's first touch, the probe sphere at the path's start, and beside it the
 plan's description, the sizes it predicts against the session's, and where to download
@@ -56,8 +57,16 @@ class PlanPanel:
             size = np.asarray(view["size"], float)
             centres = np.asarray(view["centres"], np.float32)
             contact = np.asarray(view["contact"], bool)
-            self._handles["plan:phantom"] = scene.add_box("/plan/phantom", color=(120, 200, 140),
-                                                          dimensions=tuple(size), position=tuple(size / 2), opacity=0.35)
+            surface = view.get("surface")
+            if surface:
+                vertices = np.asarray(surface["vertices"], np.float32)
+                self._handles["plan:phantom"] = scene.add_mesh_simple(
+                    "/plan/phantom", vertices, np.asarray(surface["faces"], np.uint32), color=(120, 200, 140), opacity=0.35)
+                extent = np.concatenate([vertices.min(axis=0, keepdims=True), vertices.max(axis=0, keepdims=True)])
+            else:
+                self._handles["plan:phantom"] = scene.add_box("/plan/phantom", color=(120, 200, 140),
+                                                              dimensions=tuple(size), position=tuple(size / 2), opacity=0.35)
+                extent = np.stack([np.zeros(3), size])
             seg = np.stack([centres[:-1], centres[1:]], axis=1)
             colours = np.where((contact[:-1] | contact[1:])[:, None], np.array(_CONTACT), np.array(_FREE)).astype(np.uint8)
             self._handles["plan:path"] = scene.add_line_segments("/plan/path", seg, np.repeat(colours[:, None], 2, axis=1),
@@ -73,7 +82,7 @@ class PlanPanel:
             self.plan_job = job_id
             self.gui_plan_info.content = plan_markdown(view, job_id)
             self._set_mode("plan")
-            self._frame(np.concatenate([centres, np.zeros((1, 3)), size[None]]), (0.0, -0.16, 0.12))
+            self._frame(np.concatenate([centres, extent]), (0.0, -0.16, 0.12))
 
     def plan_state(self) -> dict:
         """This tab's plan: the job shown, whether its path is drawn (``segments``: 1 line-segment

@@ -282,7 +282,8 @@ class TabView(IcpPanel, DiagnosisPanel, PlanPanel):
                                                   ("geometry", self.gui_geometry))}
 
     def state(self) -> dict:
-        """JSON-able state of this tab: mode, run, sequence, frame, time, layers, playback, picks, camera."""
+        """JSON-able state of this tab: mode, run (and its mesh), sequence, frame, time, layers, playback,
+        picks, camera."""
         with self._lock:
             seq = self.view.seq if self.view is not None else None
             c = self.client.camera
@@ -311,6 +312,7 @@ def _seq_state(run_id: int | None, run: RunArrays | None, seq: SequenceArrays | 
         "layers": ([k for k, has in (("cloud", True), ("fem", True), ("corrected", seq.corrected_positions is not None),
                                      ("probe", True)) if has] if seq else []),
         "time": float(seq.times[frame]) if seq else None,
+        "mesh": run.mesh if run else None,
     }
 
 

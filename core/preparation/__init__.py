@@ -11,12 +11,13 @@ Public surface::
     prepared.sequences["seq00"].clouds[10]           # (M, 3) float32, m, phantom frame
 """
 
-from core.preparation.calibration import Calibration, calibrate
+from core.preparation.calibration import Calibration, calibrate, calibrate_robot_on_landmarks
 from core.preparation.prepare import cache_root, prepare_session
 from core.preparation.prepared import Clouds, PrepareConfig, PreparedSequence, PreparedSession
 from core.preparation.probe import ProbePath
 
 __all__ = [
+    "calibrate_robot_on_landmarks",
     "Calibration",
     "Clouds",
     "PrepareConfig",

@@ -19,7 +19,7 @@ from core.registration import (
     landmark_normals,
 )
 
-__all__ = ["Calibration", "calibrate"]
+__all__ = ["Calibration", "calibrate", "calibrate_robot_on_landmarks"]
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
     """Register robot and camera to the phantom frame.
 
     The robot is registered on ``calibration/landmarks.csv`` when the session has it
-    (:func:`_calibrate_robot_on_landmarks`), otherwise on ``calibration/corners.csv``
+    (:func:`calibrate_robot_on_landmarks`), otherwise on ``calibration/corners.csv``
     (:func:`core.registration.calibrate_robot`).
 
     Args:
@@ -88,7 +88,7 @@ def calibrate(session: Session, *, picked=None) -> Calibration:
     if picked is None:
         picked = read_picked(session.path)
     if session.landmark_touches is not None:
-        robot = _calibrate_robot_on_landmarks(session)
+        robot = calibrate_robot_on_landmarks(session)
     else:
         robot = calibrate_robot(session.corners, meta.phantom.size, meta.probe.radius)
     reference = session.reference_cloud()
@@ -143,7 +143,7 @@ def _frames_off_axis(seq, T_phantom_robot: np.ndarray, size, count: int = 3) -> 
     return sorted(chosen) if chosen else sorted({0, n // 4, n // 2})
 
 
-def _calibrate_robot_on_landmarks(session: Session) -> RigidFit:
+def calibrate_robot_on_landmarks(session: Session) -> RigidFit:
     """``T_phantom_robot`` from ``calibration/landmarks.csv`` (Kabsch 1976).
 
     Each touch's phantom-frame sphere centre is its landmark (``session.json``) plus the

@@ -54,7 +54,9 @@ class GenerateParams(_Strict):
 class _ModelParams(_Strict):
     session_id: int = Field(description="id of a registered session")
     poisson_ratio: float = Field(0.44, gt=0.0, lt=0.5)
-    grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="FEM node grid nx, ny, nz")
+    grid: Grid = Field(default_factory=lambda: [13, 5, 5], description="FEM node grid nx, ny, nz of a box phantom")
+    element_size: float | None = Field(None, gt=0.0, le=1.0, description="target element size of a phantom given by "
+                                       "phantom.stl, m (empty: about the paper's 325 nodes; unused for a box)")
     effects: list[dict] = Field(default_factory=list, description="model extensions (SESSION_FORMAT effect kinds)")
     sequences: list[str] | None = Field(None, description="sequence names (default: all, or train for sweeps)")
 
@@ -182,7 +184,7 @@ def _replay_config(p: _ModelParams, youngs: float = 5000.0):
     from core.simulation import effect_from_dict
     from core.simulation.replay import ReplayConfig
     return ReplayConfig(
-        youngs_modulus=youngs, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid),
+        youngs_modulus=youngs, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid), element_size=p.element_size,
         effects=tuple(effect_from_dict(dict(e)) for e in p.effects),
         sequences=tuple(p.sequences) if p.sequences else None,
     )
@@ -192,7 +194,7 @@ def _base_trial(p: _ModelParams):
     from core.identification import Trial
 
     return Trial(sequence="", youngs_modulus=1.0, poisson_ratio=p.poisson_ratio, grid=tuple(p.grid),
-                 effects=tuple(dict(e) for e in p.effects))
+                 element_size=p.element_size, effects=tuple(dict(e) for e in p.effects))
 
 
 def _prepare(p: _ModelParams, ctx: JobContext, lo: float, hi: float, youngs: float = 5000.0):
@@ -210,6 +212,7 @@ def run_generate(p: GenerateParams, ctx: JobContext) -> dict:
 
 
 def run_replay(p: ReplayParams, ctx: JobContext) -> dict:
+    from app.run_mesh import mesh_summary
     from app.viewer.data import write_viewer_arrays
     from core.simulation.replay import replay, write_replay
     prepared = _prepare(p, ctx, 0.0, 0.3, p.youngs_modulus)
@@ -218,6 +221,7 @@ def run_replay(p: ReplayParams, ctx: JobContext) -> dict:
     ctx.progress(0.92, "per-vertex errors for the viewer")
     write_viewer_arrays(prepared, result, ctx.artifact_dir)
     summary = result.to_json()
+    summary["mesh"] = {**mesh_summary(result.mesh), **(summary.get("mesh") or {})}  # the dashboard's mesh line
     summary["viewer"] = True
     return summary
 
@@ -337,7 +341,7 @@ def run_plan(p: PlanParams, ctx: JobContext) -> dict:
         plan = plan_experiment(prepared, detect, config, fixed=fixed, youngs_modulus=E, kinds=p.kinds, limits=limits,
                                executor=ex, callback=ctx.scaled(0.6, 0.98))
     out = write_plan(plan, ctx.artifact_dir)
-    write_plan_view(plan, prepared.size, prepared.probe_radius, out)
+    write_plan_view(plan, prepared.size, prepared.probe_radius, out, stl=prepared.stl_path)
     summary = plan.to_json()
     summary.pop("path_phantom", None)  # in plan.json and plan_view.json; the job row stays small
     summary["plan_view"] = True
@@ -377,7 +381,7 @@ def run_train(p: TrainParams, ctx: JobContext) -> dict:
     summary["checkpoint"] = ck_path.name
     (out / "train.json").write_text(json.dumps(summary, indent=2))
     ctx.progress(0.98, "corrected meshes for the viewer")
-    summary["corrected_shown"] = _write_corrected_run(prepared, config, report, out / VIEWER_RUN)
+    summary["corrected_shown"], summary["mesh"] = _write_corrected_run(prepared, config, report, out / VIEWER_RUN)
     summary["viewer"] = True
     return summary
 
@@ -387,14 +391,16 @@ VIEWER_RUN = "viewer_run"
 corrected meshes in ``corrected/`` (what :func:`app.viewer.data.load_run` reads)."""
 
 
-def _write_corrected_run(prepared, config, report, folder) -> dict[str, str]:
+def _write_corrected_run(prepared, config, report, folder) -> tuple[dict[str, str], dict]:
     """Replay the test sequences plainly (the raw FEM layer) and store the corrected
     trajectories beside them: in-loop (the paper's use) where it did not diverge, else
-    offline. Returns {sequence: "in_loop" | "offline"}."""
+    offline. Returns ({sequence: "in_loop" | "offline"}, the replayed mesh's
+    :func:`app.run_mesh.mesh_summary`)."""
     from dataclasses import replace
 
     import numpy as np
 
+    from app.run_mesh import mesh_summary
     from app.viewer.data import vertex_errors, write_viewer_arrays
     from core.simulation.replay import replay, write_replay
     tests = list(report.in_loop)
@@ -408,10 +414,10 @@ def _write_corrected_run(prepared, config, report, folder) -> dict[str, str]:
         positions = corrected.positions
         assert positions.shape == result.sequences[name].simulation.positions.shape, name  # same camera frames
         np.savez_compressed(folder / "corrected" / f"{name}.npz", positions=positions,
-                            vertex_error=vertex_errors(positions, config.grid, prepared.sequences[name].clouds, config.supersample),
+                            vertex_error=vertex_errors(positions, result.mesh, prepared.sequences[name].clouds, config.supersample),
                             mode=np.str_(corrected.mode))
         shown[name] = corrected.mode
-    return shown
+    return shown, mesh_summary(result.mesh)
 
 
 def run_evaluate(p: EvaluateParams, ctx: JobContext) -> dict:
