@@ -26,6 +26,11 @@ class DiagnosisConfig:
     Attributes:
         youngs_modulus: E of the base model, Pa (the paper's 5e3 unless the session pins it).
         poisson_ratio, grid, law: the replay model (the paper's 0.44, 13x5x5, corotational).
+        element_size: target element size (m) of a phantom given by ``phantom.stl`` (None:
+            about the paper's node count); its fine mesh (``fine_grid`` set) halves the
+            mean edge. surface_patches: patches of such a phantom's residual field
+            (:class:`core.diagnosis.patches.PatchLayout`, instead of ``layout_bins`` and
+            ``side_rows`` of the box's faces).
         fine_grid: the grid the base residual and the reported errors come from
             (multi-fidelity: signatures and fits run on ``grid``, their fields shifted by
             the discrepancy ``fine - coarse`` of the base model, sequence by sequence). The
@@ -103,6 +108,8 @@ class DiagnosisConfig:
     grid: tuple[int, int, int] = (13, 5, 5)
     law: str = "corotational"
     fine_grid: tuple[int, int, int] | None = (25, 9, 9)
+    element_size: float | None = None
+    surface_patches: int = 32
     coarse_dt: float | None = 1.0 / 60.0
     fine_fit_dt: float | None = 1.0 / 60.0
     layout_bins: tuple[int, int] = (16, 8)

@@ -59,7 +59,7 @@ from core.diagnosis.candidates import top_presses
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability
 from core.diagnosis.evidence import Directions, Evidence, Spec
-from core.diagnosis.fields import FACES, FieldLayout
+from core.diagnosis.fields import NOISE_GROUPS, FieldLayout
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
                                        reproduction)
@@ -205,6 +205,27 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
     return _Evidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
 
 
+def _floor_mesh(prepared: PreparedSession, cfg: DiagnosisConfig, ev: Evidence):
+    """The mesh of the reported noise floor: None for a box (the grid's), the fine mesh
+    of any phantom."""
+    if getattr(prepared, "stl_path", None) is None:
+        return None
+    from core.simulation.replay import replay_mesh
+
+    return replay_mesh(prepared, cfg.grid, ev.fine_element_size if cfg.fine_grid else cfg.element_size)
+
+
+def field_layout(prepared: PreparedSession, cfg: DiagnosisConfig):
+    """The residual field's layout: bins on the box's faces, or patches of any phantom's
+    visible surface (``phantom.stl``; :class:`core.diagnosis.patches.PatchLayout`)."""
+    if getattr(prepared, "stl_path", None) is not None:
+        from core.diagnosis.patches import PatchLayout
+        from core.simulation.replay import replay_mesh
+
+        return PatchLayout(replay_mesh(prepared, cfg.grid, cfg.element_size), cfg.surface_patches)
+    return FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
+
+
 def diagnose_prepared(
     prepared: PreparedSession,
     config: DiagnosisConfig | None = None,
@@ -234,7 +255,7 @@ def diagnose_prepared(
     if cfg.segments:
         prepared = informative_session(prepared, int(cfg.segments))
     say = callback or (lambda f, m: None)
-    layout = FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
+    layout = field_layout(prepared, cfg)
     ev = Evidence(prepared, cfg, executor, layout)
     for role, names in ev.names.items():
         if not names:
@@ -484,13 +505,13 @@ def diagnose_prepared(
     say(1.0, "done")
     return Diagnosis(
         session=prepared.path, config=cfg, noise_sigma=math.sqrt(sigma2),
-        noise_floor=float(noise_floor(prepared, cfg.fine_grid or cfg.grid)), youngs=youngs, baseline_test_error=b_err,
+        noise_floor=float(noise_floor(prepared, cfg.fine_grid or cfg.grid, mesh=_floor_mesh(prepared, cfg, ev))), youngs=youngs, baseline_test_error=b_err,
         causes=causes, candidates=reports, confounded=confounded,
         extended_kinds=[c.kind for c in causes], extended_effects=ext_effects,
         extended_test_error=e_err, extended_gain=gain, gain_interval=gain_iv,
         summary=dict(summary(ev, all_base, sigma2, prepared),
                      validation_bin_frames=int(sum((ev.counts[n][:, :layout.top_bins] > 0).sum() for n in ev.names["validation"])),
-                     noise_by_face_m={f: math.sqrt(face_sigma2[FACES.index(f)]) for f in layout.faces()}),
+                     noise_by_face_m={f: math.sqrt(face_sigma2[NOISE_GROUPS.index(f)]) for f in layout.faces()}),
         base_fields={r.sequence: r for r in ev.runs([base_spec], "train", fine=True)[0] + ev.runs([base_spec], "validation", fine=True)[0] + base_test},
         extended_fields={r.sequence: r for r in ext_train + ext_val + ext_runs},
         layout=layout, timings=timings, simulations=ev.simulations,

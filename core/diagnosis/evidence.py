@@ -25,7 +25,8 @@ from core.identification.execution import Executor
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
 from core.preparation import PreparedSession
-from core.simulation.replay import build_replay_model, frame_errors
+from core.simulation.meshing import mean_edge_length
+from core.simulation.replay import build_replay_model, frame_errors, replay_mesh
 from core.simulation.effects import FitSpace
 from core.simulation.sensitivity import simulate_sensitivities
 from core.simulation.solver import simulate
@@ -180,17 +181,19 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
                           for hj, e in zip(h, np.eye(theta.size))])
         jac = (sens.positions, sens.contact_force, d_E, d_off)
     pts, bins, counts = _binned(prepared, t.sequence, item.layout)
-    fld, ss, dof = residual_field(sim.positions, t.grid, item.layout, pts, bins, counts)
+    # the mesh the fields are measured on: the box's grid, or any phantom's replayed mesh
+    shape = replay_mesh(prepared, t.grid, t.element_size) if getattr(item.layout, "is_patches", False) else t.grid
+    fld, ss, dof = residual_field(sim.positions, shape, item.layout, pts, bins, counts)
     n = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
     sums = None
     if item.paper_error:
-        means, _ = frame_errors(sim.positions, t.grid, seq.clouds)
+        means, _ = frame_errors(sim.positions, shape, seq.clouds)
         sums = means * n  # NaN where the frame diverged
     run = FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
                    np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects))
     if jac is not None:
         dpos, dforce, d_E, d_off = jac
-        dfield = residual_field_tangent(sim.positions, dpos, t.grid, item.layout, pts, bins, counts)
+        dfield = residual_field_tangent(sim.positions, dpos, shape, item.layout, pts, bins, counts)
         run = replace(run, jac_field=dfield, jac_force=np.asarray(dforce, dtype=np.float64), d_youngs=d_E,
                       d_offset=d_off)
     return run
@@ -243,6 +246,10 @@ class Evidence:
                 counts = np.where(side[None, :] & (dist < prepared.probe_radius + cfg.side_probe_exclusion), 0, counts)
             self.counts[n] = counts.astype(np.float64)
         self.force, self.force_sigma, self.force_note = _force_evidence(prepared, cfg.use_force)
+        self.fine_element_size = None
+        if getattr(prepared, "stl_path", None) is not None:
+            coarse = replay_mesh(prepared, cfg.grid, cfg.element_size)
+            self.fine_element_size = (cfg.element_size or mean_edge_length(coarse)) / 2.0
         self.sigma2 = 1.0  # the top face's point noise variance, m^2 (set by weigh_faces)
 
     @property
@@ -268,8 +275,13 @@ class Evidence:
         sim = SimulationConfig(dt=c.coarse_dt) if coarse and c.coarse_dt else SimulationConfig()
         if spec.simulation:
             sim = replace(sim, **dict(spec.simulation))
+        element_size = c.element_size
+        if getattr(self.prepared, "stl_path", None) is not None and c.fine_grid is not None \
+                and tuple(grid) == tuple(c.fine_grid):
+            element_size = self.fine_element_size  # any phantom: the fine mesh halves the element size
         return Trial(sequence=seq, youngs_modulus=spec.youngs_modulus, poisson_ratio=spec.poisson_ratio or c.poisson_ratio,
-                     grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim)
+                     grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim,
+                     element_size=element_size)
 
     @staticmethod
     def _key(spec: Spec, seq, paper, grid):

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 
-__all__ = ["FieldLayout", "FACES", "face_residuals", "face_residuals_tangent", "frame_bins", "residual_field",
+__all__ = ["FieldLayout", "FACES", "NOISE_GROUPS", "face_residuals", "face_residuals_tangent", "frame_bins", "residual_field",
            "residual_field_tangent", "phase_labels", "PHASES"]
 
 PHASES = ("rest", "loading", "holding", "unloading", "sliding")
@@ -38,6 +38,9 @@ PHASES = ("rest", "loading", "holding", "unloading", "sliding")
 
 FACES = ("top", "-x", "+x", "-y", "+y")
 """Faces of the residual field, in bin order: (normal axis, at the high end) of each."""
+NOISE_GROUPS = FACES + ("surface",)
+"""Noise groups of a field's bins: the box's faces, then ``"surface"``, the single group of
+a phantom of any shape (:class:`core.diagnosis.patches.PatchLayout`)."""
 _FACE_AXIS = {"top": (2, True), "-x": (0, False), "+x": (0, True), "-y": (1, False), "+y": (1, True)}
 
 
@@ -306,6 +309,7 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
     F, B = counts.shape
     n_dir = dpositions.shape[0]
     out = np.zeros((n_dir, F, B))
+    patches = getattr(layout, "is_patches", False)
     face_of = layout.face_of_bin()
     pos = np.asarray(positions, dtype=np.float64)
     ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
@@ -316,10 +320,15 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
     pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
     bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
     fb = face_of[bn]
-    dr = np.empty((n_dir, pts.shape[0]))
-    for k in np.unique(fb):
-        m = fb == k
-        dr[:, m] = face_residuals_tangent(pts[m], pos, dpositions, grid, layout.size, FACES[k], fr[m])
+    if patches:  # any phantom: ``grid`` is the replayed TetMesh
+        from core.diagnosis.patches import sampler_of
+
+        dr = sampler_of(grid).residuals_tangent(pts, fr, pos, dpositions)
+    else:
+        dr = np.empty((n_dir, pts.shape[0]))
+        for k in np.unique(fb):
+            m = fb == k
+            dr[:, m] = face_residuals_tangent(pts[m], pos, dpositions, grid, layout.size, FACES[k], fr[m])
     flat = fr * B + bn
     n = np.where(ok[:, None], counts, 0).astype(np.float64)
     for t in range(n_dir):
@@ -353,17 +362,20 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
 
     Args:
         positions: (F, N, 3) simulated node positions, m, phantom frame.
-        grid: (nx, ny, nz) of the mesh. layout, points, bins, counts: from :func:`frame_bins`.
+        grid: (nx, ny, nz) of the mesh, or with a :class:`core.diagnosis.patches.PatchLayout`
+            the replayed :class:`core.simulation.mesh.TetMesh`. layout, points, bins,
+            counts: from :func:`frame_bins`.
 
     Returns:
         (field (F, B) float64 mean residual per bin, m (0 where a bin is empty or the
-        frame diverged); per face of :data:`FACES`, the within-bin sum of squared
-        deviations (5,) m^2 and its degrees of freedom (5,)): the last two estimate
-        each face's noise variance. All frames are done in one vectorised pass per face.
+        frame diverged); per noise group of :data:`NOISE_GROUPS`, the within-bin sum of
+        squared deviations (6,) m^2 and its degrees of freedom (6,)): the last two
+        estimate each face's noise variance. All frames are done in one vectorised pass per face.
     """
     F, B = counts.shape
     field = np.zeros((F, B))
-    ss, dof = np.zeros(len(FACES)), np.zeros(len(FACES), dtype=np.int64)
+    G = len(NOISE_GROUPS)
+    ss, dof = np.zeros(G), np.zeros(G, dtype=np.int64)
     face_of = layout.face_of_bin()
     pos = np.asarray(positions, dtype=np.float64)
     ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
@@ -374,16 +386,21 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
     pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
     bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
     fb = face_of[bn]
-    r = np.empty(pts.shape[0])
-    for k in np.unique(fb):
-        m = fb == k
-        r[m] = face_residuals(pts[m], pos, grid, layout.size, FACES[k], frames=fr[m])
+    if getattr(layout, "is_patches", False):  # any phantom: ``grid`` is the replayed TetMesh
+        from core.diagnosis.patches import sampler_of
+
+        r = sampler_of(grid).residuals(pts, fr, pos)
+    else:
+        r = np.empty(pts.shape[0])
+        for k in np.unique(fb):
+            m = fb == k
+            r[m] = face_residuals(pts[m], pos, grid, layout.size, FACES[k], frames=fr[m])
     flat = fr * B + bn
     sums = np.bincount(flat, weights=r, minlength=F * B).reshape(F, B)
     n = np.where(ok[:, None], counts, 0)
     field = np.divide(sums, n, out=np.zeros((F, B)), where=n > 0)
-    ss = np.bincount(fb, weights=(r - field.ravel()[flat]) ** 2, minlength=len(FACES))
-    dof = np.bincount(fb, minlength=len(FACES)) - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=len(FACES))
+    ss = np.bincount(fb, weights=(r - field.ravel()[flat]) ** 2, minlength=G)
+    dof = np.bincount(fb, minlength=G) - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=G)
     return field, ss, dof.astype(np.int64)
 
 

@@ -416,7 +416,7 @@ def plan_experiment(
 
     # the session's camera coverage and noise
     session_cfg = replace(cfg, fine_grid=None)
-    layout = FieldLayout(tuple(float(v) for v in size), cfg.layout_bins, side_rows=cfg.side_rows)
+    layout = FieldLayout(tuple(float(v) for v in size), cfg.layout_bins, side_rows=cfg.side_rows)  # box only (issue 18)
     ev0 = Evidence(prepared, session_cfg, executor, layout)
     base_runs = ev0.runs([[]], "train")[0] + ev0.runs([[]], "validation")[0]
     ss = np.sum([r.ss for r in base_runs], axis=0)

@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from core.diagnosis.evidence import Evidence, FieldRun
-from core.diagnosis.fields import FACES, PHASES, phase_labels
+from core.diagnosis.fields import NOISE_GROUPS, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
 from core.identification.verdict import MAX_RATIO
 from core.lab.probing import penetration_depth
@@ -88,7 +88,7 @@ def summary(eng: Evidence, runs: list[FieldRun], sigma2: float, prepared: Prepar
             by_phase[p][1] += float((fld[m] ** 2).sum())
             by_phase[p][2] += int(m.sum())
         for k, f in enumerate(eng.layout.faces()):
-            m = (face_of == FACES.index(f))[None, :] & has
+            m = (face_of == NOISE_GROUPS.index(f))[None, :] & has
             by_face[f][0] += float(excess[m].sum())
             by_face[f][1] += float((fld[m] ** 2).sum())
             by_face[f][2] += int(m.sum())

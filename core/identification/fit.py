@@ -57,17 +57,11 @@ from core.identification.sweep import PAPER_COARSE
 from core.identification.trials import Trial, run_trial
 from core.identification.verdict import MAX_RATIO, MIN_RISE, widen_interval, youngs_verdict
 from core.preparation import PreparedSession
+from core.simulation.meshing import mean_edge_length
 from core.simulation.replay import noise_floor, replay_mesh
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
 
 Progress = Callable[[float, str], None]
-
-
-def _mean_edge(mesh) -> float:
-    """Mean edge length of a tetrahedral mesh, m."""
-    p = mesh.nodes[mesh.tets]
-    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
-    return float(np.mean([np.linalg.norm(p[:, b] - p[:, a], axis=1).mean() for a, b in pairs]))
 
 
 def refined_grid(grid) -> tuple[int, int, int]:
@@ -267,7 +261,7 @@ def fit_youngs_modulus(
     coarse_mesh = replay_mesh(prepared, base.grid, base.element_size)
     sizes = None
     if stl:  # an STL phantom: refine by halving the element size (Gmsh), as 2 n - 1 halves a grid's
-        h = base.element_size or _mean_edge(coarse_mesh)
+        h = base.element_size or mean_edge_length(coarse_mesh)
         sizes = (base.element_size, h / 2.0)
     refined_value = None
     if identifiable and refine_mesh:

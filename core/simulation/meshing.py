@@ -42,6 +42,7 @@ __all__ = [
     "MeshQuality",
     "check_stl",
     "default_element_size",
+    "mean_edge_length",
     "mesh_quality",
     "phantom_mesh",
     "rcm_order",
@@ -168,6 +169,13 @@ def check_stl(path: str | os.PathLike):
     return surface
 
 
+def mean_edge_length(mesh: TetMesh) -> float:
+    """Mean edge length of a tetrahedral mesh's tetrahedra, m (the size a refinement halves)."""
+    p = mesh.nodes[mesh.tets]
+    pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+    return float(np.mean([np.linalg.norm(p[:, b] - p[:, a], axis=1).mean() for a, b in pairs]))
+
+
 def default_element_size(volume: float, nodes: int = PAPER_NODES) -> float:
     """Element size (m) that fills ``volume`` (m^3) with about ``nodes`` nodes, as the
     paper's 13 x 5 x 5 grid fills its block: the edge of a cube of ``volume / nodes``."""
@@ -264,7 +272,7 @@ def tetrahedralise(path: str | os.PathLike, element_size: float | None = None, *
             self-intersecting surface; the message carries Gmsh's words), or the result
             has inverted or degenerate tetrahedra.
     """
-    path = Path(path)
+    path = Path(path).resolve()  # the mesher runs in the project's folder, not the caller's
     surface = check_stl(path)
     h = default_element_size(float(surface.volume)) if element_size is None else float(element_size)
     extent = float(np.max(surface.extents))

@@ -88,21 +88,28 @@ def _interp_matrix(n: int, factor: int) -> np.ndarray:
 
 
 def _triangle_operator(n_nodes: int, triangles: np.ndarray, factor: int) -> sp.csr_matrix:
-    """(P, N) barycentric super-sampling of surface triangles, each shared point once."""
-    bary = [(i, j, factor - i - j) for i in range(factor + 1) for j in range(factor + 1 - i)]
-    rows, cols, vals = [], [], []
-    index: dict[tuple, int] = {}
-    for tri in np.asarray(triangles, dtype=np.int64):
-        for w in bary:
-            key = tuple(sorted((int(tri[a]), w[a]) for a in range(3) if w[a]))
-            row = index.get(key)
-            if row is None:
-                row = index[key] = len(index)
-                for node, weight in key:
-                    rows.append(row)
-                    cols.append(node)
-                    vals.append(weight / factor)
-    return sp.csr_matrix((vals, (rows, cols)), shape=(len(index), n_nodes))
+    """(P, N) barycentric super-sampling of surface triangles, each shared point once.
+
+    Every point is keyed by its (node, weight) pairs sorted by node (vertices and edge
+    points are shared by the triangles around them); ``np.unique`` over the keys numbers
+    the points."""
+    tris = np.asarray(triangles, dtype=np.int64)
+    bary = np.array([(i, j, factor - i - j) for i in range(factor + 1) for j in range(factor + 1 - i)], dtype=np.int64)
+    T, K = tris.shape[0], bary.shape[0]
+    nodes = np.broadcast_to(tris[:, None, :], (T, K, 3)).reshape(-1, 3)
+    weights = np.broadcast_to(bary[None, :, :], (T, K, 3)).reshape(-1, 3)
+    nodes = np.where(weights > 0, nodes, -1)  # a zero weight does not tie a point to a node
+    order = np.argsort(nodes, axis=1, kind="stable")
+    nodes = np.take_along_axis(nodes, order, axis=1)
+    weights = np.take_along_axis(weights, order, axis=1)
+    keys = np.concatenate([nodes, weights], axis=1)
+    _, first = np.unique(keys, axis=0, return_index=True)
+    first.sort()  # number the points in order of first appearance (as a scan of the triangles would)
+    keys = keys[first]
+    rows = np.repeat(np.arange(keys.shape[0]), 3)
+    cols, vals = keys[:, :3].ravel(), keys[:, 3:].ravel() / factor
+    keep = cols >= 0
+    return sp.csr_matrix((vals[keep], (rows[keep], cols[keep])), shape=(keys.shape[0], n_nodes))
 
 
 def surface_operator(mesh_or_grid, factor: int = 3) -> sp.csr_matrix:
