@@ -119,8 +119,6 @@ class FitResult:
     element_sizes: tuple[float | None, float] | None = None
     """For an STL phantom: the replay mesh's target element size (None: the default)
     and the refined mesh's, m; None for a box (``grid`` and ``refined`` hold its meshes)."""
-    mesh_nodes: tuple[int, int | None] | None = None
-    """Nodes of the replay mesh (and of the refined mesh, when known)."""
 
     def to_json(self) -> dict:
         return {
@@ -312,7 +310,6 @@ def fit_youngs_modulus(
         grid=tuple(base.grid),
         refined=refined,
         element_sizes=sizes,
-        mesh_nodes=(coarse_mesh.n_nodes, None),
         poisson_ratio=base.poisson_ratio,
         errors=errors,
         profile=[(E, Jv, d, f) for E, Jv, d, f in rows],

@@ -29,6 +29,7 @@ __all__ = [
     "penetration_depth",
     "plan_from_path",
     "PathBuilder",
+    "Stroke",
     "DEFAULT_PATH_TILT_DEG",
     "MAX_PATH_PENETRATION",
 ]
@@ -341,6 +342,74 @@ def _draw_poke_geometry(rng, face, size, radius, cfg):
     return point, slide_to, slide_speed
 
 
+@dataclass(frozen=True)
+class Stroke:
+    """One press of a poke, from a safe height down to a surface point, along its inward
+    normal, and back up (the part the box's and any surface's planner share).
+
+    Attributes:
+        point: (3,) contact point on the rest surface, m. normal: (3,) its outward unit normal.
+        depth, speed, hold, clearance: as :class:`ProbingConfig`'s ranges, drawn.
+        slide_to: (3,) where a slide ends, or None. z_safe: travel height of the centre, m.
+        radius: the probe's true radius, m.
+    """
+
+    point: np.ndarray
+    normal: np.ndarray
+    depth: float
+    speed: float
+    hold: float
+    clearance: float
+    slide_to: np.ndarray | None
+    z_safe: float
+    radius: float
+
+    @classmethod
+    def draw(cls, rng, cfg: ProbingConfig, point, normal, radius: float, slide_to, z_safe: float) -> "Stroke":
+        """Depth, speed, hold and clearance drawn from ``cfg``, in this order."""
+        depth = float(rng.uniform(*cfg.depth_range))
+        speed = float(rng.uniform(*cfg.speed_range))
+        hold = float(rng.uniform(*cfg.hold_range))
+        clearance = float(rng.uniform(*cfg.clearance_range))
+        return cls(np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64), depth, speed, hold,
+                   clearance, slide_to, float(z_safe), float(radius))
+
+    @property
+    def approach(self) -> np.ndarray:
+        """(3,) sphere centre where the press starts, clear of the surface."""
+        return self.point + self.normal * (self.radius + self.clearance)
+
+    @property
+    def above(self) -> np.ndarray:
+        """(3,) the approach point raised to the travel height."""
+        a = self.approach
+        return np.array([a[0], a[1], self.z_safe])
+
+    @property
+    def retract(self) -> np.ndarray:
+        """(3,) sphere centre where the press ends, clear of the surface again."""
+        end = self.point if self.slide_to is None else self.slide_to
+        return end + self.normal * (self.radius + self.clearance)
+
+    def execute(self, b: "PathBuilder", rng, cfg: ProbingConfig, slide_speed: float | None) -> None:
+        """Add the stroke's knots to ``b``: up to the travel height, over the approach
+        point, down to it, press, hold, slide (a pause drawn after it), retract, up, rest
+        (drawn)."""
+        n, r = self.normal, self.radius
+        b.move([b.here[0], b.here[1], self.z_safe], cfg.travel_speed)  # up to the safe height
+        b.move(self.above, cfg.travel_speed)  # over the approach point, clear of the phantom
+        b.move(self.approach, cfg.travel_speed)  # down beside / above the surface
+        b.move(self.point + n * (r - self.depth), self.speed)
+        b.wait(self.hold)
+        if self.slide_to is not None:
+            b.move(self.slide_to + n * (r - self.depth), slide_speed)
+            b.wait(float(rng.uniform(0.2, 0.6)))
+        retract = self.retract
+        b.move(retract, self.speed)
+        b.move([retract[0], retract[1], self.z_safe], cfg.travel_speed)
+        b.wait(float(rng.uniform(*cfg.rest_range)))
+
+
 def plan_sequence(
     rng: np.random.Generator,
     *,
@@ -396,27 +465,9 @@ def plan_sequence(
         face = sides[rng.integers(len(sides))] if (sides and to_side) else "+z"
         n = FACE_NORMALS[face]
         point, slide_to, slide_speed = _draw_poke_geometry(rng, face, size, radius, cfg)
-        depth = float(rng.uniform(*cfg.depth_range))
-        speed = float(rng.uniform(*cfg.speed_range))
-        hold = float(rng.uniform(*cfg.hold_range))
-        clearance = float(rng.uniform(*cfg.clearance_range))
-        approach = point + n * (radius + clearance)
-        pressed = point + n * (radius - depth)
-        above = np.array([approach[0], approach[1], z_safe])
-        b.move([b.here[0], b.here[1], z_safe], cfg.travel_speed)  # up to the safe height
-        b.move(above, cfg.travel_speed)  # over the approach point, clear of the box
-        b.move(approach, cfg.travel_speed)  # down beside / above the face
-        b.move(pressed, speed)
-        b.wait(hold)
-        end_point = point
-        if slide_to is not None:
-            b.move(slide_to + n * (radius - depth), slide_speed)
-            b.wait(float(rng.uniform(0.2, 0.6)))
-            end_point = slide_to
-        retract = end_point + n * (radius + clearance)
-        b.move(retract, speed)
-        b.move([retract[0], retract[1], z_safe], cfg.travel_speed)
-        b.wait(float(rng.uniform(*cfg.rest_range)))
+        stroke = Stroke.draw(rng, cfg, point, n, radius, slide_to, z_safe)
+        stroke.execute(b, rng, cfg, slide_speed)
+        depth, speed, hold = stroke.depth, stroke.speed, stroke.hold
         if b.now > duration:
             b.rollback(snap)
             failures += 1

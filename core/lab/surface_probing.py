@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.lab.probing import Poke, ProbePlan, ProbeTrajectory, ProbingConfig, PathBuilder, tool_rotation
+from core.lab.probing import PathBuilder, Poke, ProbePlan, ProbeTrajectory, ProbingConfig, Stroke, tool_rotation
 
 __all__ = ["ReachableSurface", "plan_surface_sequence", "surface_penetration_depth"]
 
@@ -139,32 +139,15 @@ def plan_surface_sequence(
                     and target[0][2] >= cfg.bottom_margin + radius:
                 slide_to = target[0]
                 slide_speed = float(rng.uniform(*cfg.slide_speed_range))
-        depth = float(rng.uniform(*cfg.depth_range))
-        speed = float(rng.uniform(*cfg.speed_range))
-        hold = float(rng.uniform(*cfg.hold_range))
-        clearance = float(rng.uniform(*cfg.clearance_range))
-        approach = point + n * (radius + clearance)
-        pressed = point + n * (radius - depth)
-        above = np.array([approach[0], approach[1], z_safe])
-        end_point = point
-        if slide_to is not None:
-            end_point = slide_to
-        retract = end_point + n * (radius + clearance)
-        travel = np.concatenate([np.linspace(above, approach, 12), np.linspace(retract, [retract[0], retract[1], z_safe], 12)])
-        if np.any(surface.clearance(travel) < radius + 0.5 * clearance):
+        stroke = Stroke.draw(rng, cfg, point, n, radius, slide_to, z_safe)
+        retract = stroke.retract
+        travel = np.concatenate([np.linspace(stroke.above, stroke.approach, 12),
+                                 np.linspace(retract, [retract[0], retract[1], z_safe], 12)])
+        if np.any(surface.clearance(travel) < radius + 0.5 * stroke.clearance):
             failures += 1  # the descent would touch the phantom (a non-convex surface)
             continue
-        b.move([b.here[0], b.here[1], z_safe], cfg.travel_speed)
-        b.move(above, cfg.travel_speed)
-        b.move(approach, cfg.travel_speed)
-        b.move(pressed, speed)
-        b.wait(hold)
-        if slide_to is not None:
-            b.move(slide_to + n * (radius - depth), slide_speed)
-            b.wait(float(rng.uniform(0.2, 0.6)))
-        b.move(retract, speed)
-        b.move([retract[0], retract[1], z_safe], cfg.travel_speed)
-        b.wait(float(rng.uniform(*cfg.rest_range)))
+        stroke.execute(b, rng, cfg, slide_speed)
+        depth, speed, hold = stroke.depth, stroke.speed, stroke.hold
         if b.now > duration:
             b.rollback(snap)
             failures += 1

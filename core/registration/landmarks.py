@@ -25,7 +25,7 @@ import numpy as np
 
 from core.errors import RegistrationError
 from core.io.checks import collinear
-from core.registration.rigid import RigidFit, kabsch
+from core.registration.rigid import RigidFit, register_touches
 
 __all__ = ["landmark_normals", "landmark_points_phantom", "calibrate_robot_landmarks"]
 
@@ -238,17 +238,5 @@ def calibrate_robot_landmarks(
             f"landmarks {distinct} are collinear: their touches cannot fix the rotation about "
             "their line; touch at least 3 non-collinear landmarks"
         )
-    try:
-        fit = kabsch(positions, target)
-    except ValueError as exc:
-        raise RegistrationError(f"landmark registration is degenerate: {exc}") from exc
-    if fit.rms > max_rms:
-        worst = int(np.argmax(fit.residuals))
-        raise RegistrationError(
-            f"robot calibration rms {fit.rms * 1e3:.2f} mm exceeds {max_rms * 1e3:.2f} mm; "
-            f"worst landmark {labels[worst]!r} (row {worst}) is off by "
-            f"{fit.residuals[worst] * 1e3:.2f} mm -- check landmark labels, positions, normals "
-            "and probe radius",
-            rms=fit.rms,
-        )
-    return fit
+    return register_touches(positions, target, labels, what="landmark",
+                            check="landmark labels, positions, normals and probe radius", max_rms=max_rms)

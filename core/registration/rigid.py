@@ -17,7 +17,7 @@ import numpy as np
 
 from core.errors import RegistrationError
 
-__all__ = ["RigidFit", "kabsch", "calibrate_robot", "corner_points_phantom", "apply_transform"]
+__all__ = ["RigidFit", "kabsch", "register_touches", "calibrate_robot", "corner_points_phantom", "apply_transform"]
 
 #: Phantom-frame (x, y) of each corner label, as fractions of the phantom size
 #: (``SESSION_FORMAT.md``, calibration/corners.csv).
@@ -214,16 +214,28 @@ def calibrate_robot(
             f"need touches of at least 3 distinct corners, got {sorted(distinct)}", fitness=None, rms=None
         )
     target = corner_points_phantom(labels, phantom_size, probe_radius)
+    return register_touches(positions, target, labels, what="corner", check="corner labels and probe radius",
+                            max_rms=max_rms)
+
+
+def register_touches(positions: np.ndarray, target: np.ndarray, labels: Sequence[str], *, what: str, check: str,
+                     max_rms: float) -> RigidFit:
+    """``T_phantom_robot`` by :func:`kabsch` of probe touches (N, 3), robot frame, onto
+    their phantom-frame targets (N, 3), m, refused when it does not fit.
+
+    Raises:
+        RegistrationError: degenerate points, or rms > ``max_rms`` (the message gives the
+            rms in mm, the worst ``what`` of ``labels`` and what to ``check``)."""
     try:
         fit = kabsch(positions, target)
     except ValueError as exc:
-        raise RegistrationError(f"corner registration is degenerate: {exc}") from exc
+        raise RegistrationError(f"{what} registration is degenerate: {exc}") from exc
     if fit.rms > max_rms:
         worst = int(np.argmax(fit.residuals))
         raise RegistrationError(
             f"robot calibration rms {fit.rms * 1e3:.2f} mm exceeds {max_rms * 1e3:.2f} mm; "
-            f"worst corner {labels[worst]!r} (row {worst}) is off by {fit.residuals[worst] * 1e3:.2f} mm "
-            "-- check corner labels and probe radius",
+            f"worst {what} {labels[worst]!r} (row {worst}) is off by {fit.residuals[worst] * 1e3:.2f} mm "
+            f"-- check {check}",
             rms=fit.rms,
         )
     return fit

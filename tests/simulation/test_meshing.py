@@ -52,7 +52,6 @@ def test_a_box_stl_fills_the_box_with_good_tetrahedra(tmp_path):
     inv[perm] = np.arange(perm.size)
     t = inv[mesh.tets]
     assert q.bandwidth * 3 < int(np.max(t.max(1) - t.min(1)))
-    assert q.bandwidth == mesh_quality(mesh).bandwidth  # deterministic
     order = rcm_order(mesh.nodes, mesh.tets)
     assert sorted(order.tolist()) == list(range(mesh.n_nodes))
 
