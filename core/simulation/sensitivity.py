@@ -42,7 +42,7 @@ from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import MaxwellArm, Model, State
 from core.preparation.probe import ProbePath
 from core.simulation.solver import SimulationResult, no_rest_state, static_equilibrium
-from core.simulation.timeloop import divergence_message, model_tuple, step_grid
+from core.simulation.timeloop import advance_or_diverge, divergence_message, model_tuple, step_grid
 from core.simulation.tangent import element_forces_tangent
 
 __all__ = ["Sensitivities", "ModelDerivatives", "model_derivatives", "simulate_sensitivities"]
@@ -286,10 +286,11 @@ def simulate_sensitivities(build: Builder, theta, path: ProbePath, probe_radius:
         j += 1
     limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
     fac = model._factor
-    code, k, j, disp, rows = stepper.advance(
+    code, k, j, disp, rows = advance_or_diverge(
         model_tuple(model), lapack_pbtrs(), fac.cbT, fac._rows, fac._slot, fac._used, centres, float(radius),
         x, v, q, eps_v, times, step_t, k_of, 0, False, j, F, out_x, out_f, x.copy(), np.zeros(3), limit, np.zeros(3),
-        dm.kernel_tuple(), dm.centres, dx, dv, dq, deps, dout_x, dout_f, dx.copy(), np.zeros((p, 3)), np.zeros((p, 3)))
+        dm.kernel_tuple(), dm.centres, dx, dv, dq, deps, dout_x, dout_f, dx.copy(), np.zeros((p, 3)), np.zeros((p, 3)),
+        k=0, j=j)
     fac._rows = rows
     status, message = "ok", ""
     if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):

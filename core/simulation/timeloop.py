@@ -17,7 +17,7 @@ from core.preparation.probe import ProbePath
 from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import Model, State
 
-__all__ = ["StepGrid", "step_grid", "divergence_message", "compilable", "run_compiled", "model_tuple", "no_tangents",
+__all__ = ["NUMERICAL_ERRORS", "advance_or_diverge", "StepGrid", "step_grid", "divergence_message", "compilable", "run_compiled", "model_tuple", "no_tangents",
            "apply_hook"]
 
 
@@ -70,6 +70,25 @@ def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) 
     return StepGrid(times, path, float(probe_radius), t0, step_t, path.at(step_t), k_of)
 
 
+NUMERICAL_ERRORS = (ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError)
+"""What the compiled step raises when its state has gone non-finite inside a step (numba
+checks a matrix before a solve, and divides as Python does): a divergence, not a bug."""
+
+
+def advance_or_diverge(*args, k: int, j: int):
+    """:func:`core.simulation.stepper.advance` (same arguments and returns), with a
+    :data:`NUMERICAL_ERRORS` inside it reported as ``STATUS_NONFINITE`` at the call's first
+    step ``k`` and frame ``j`` (frames from there on stay NaN or hold steps completed before
+    the error), so that a replay that diverges this way is "diverged" like any other,
+    instead of failing a fit, a diagnosis or the lab."""
+    from core.simulation import stepper
+
+    try:
+        return stepper.advance(*args)
+    except NUMERICAL_ERRORS:
+        return stepper.STATUS_NONFINITE, k, j, float("nan"), args[3]
+
+
 def divergence_message(t: float, k: int, disp: float) -> str:
     """The reason a replay diverged at time ``t`` (s), step ``k``, largest displacement ``disp`` (m)."""
     return (f"diverged at t = {t:.3f} s (step {k}): "
@@ -113,9 +132,10 @@ def run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, pr
     tan = no_tangents(model, centres.shape[0], F)
     while True:
         j_stop = min(j + 1, F) if frame_hook is not None else min(j + chunk, F)
-        code, k, j, disp, rows = stepper.advance(
+        code, k, j, disp, rows = advance_or_diverge(
             mdl, pbtrs, fac.cbT, fac._rows, fac._slot, fac._used, centres, float(probe_radius), x, v, q, eps_v,
-            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force, *tan)
+            times, step_t, k_of, k, resume, j, max(j_stop, j + 1), out_x, out_f, prev_x, prev_f, limit, force, *tan,
+            k=k, j=j)
         fac._rows = rows
         if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):
             status, message = "diverged", divergence_message(step_t[k], k, disp)

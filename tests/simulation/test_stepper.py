@@ -88,3 +88,38 @@ def test_divergence_is_reported_at_the_same_step():
         msgs[compiled] = (res.status, res.message, res.steps, np.isnan(res.positions).any(axis=(1, 2)).tolist())
     assert msgs[True] == msgs[False]
     assert msgs[True][0] == "diverged" and "node moved" in msgs[True][1]
+
+
+@pytest.mark.parametrize("error", [ZeroDivisionError("division by zero"), np.linalg.LinAlgError("Array must not contain infs or NaNs.")])
+def test_a_numerical_error_inside_the_compiled_step_is_a_divergence(monkeypatch, error):
+    """Numba raises these when a step's state has gone non-finite (field seed 807's
+    model-form run, the lab's truth of a box-shaped STL): the replay, and its
+    sensitivities, report "diverged" with NaN frames from there on instead of raising."""
+    from core.simulation import stepper
+    from core.simulation.sensitivity import simulate_sensitivities
+
+    real = stepper.advance
+    calls = []
+
+    def failing(*args):
+        calls.append(1)
+        if len(calls) > 1:  # the first chunk completes, the next one fails
+            raise error
+        return real(*args)
+
+    mesh = box_mesh(SIZE, (7, 4, 4))
+    frames = np.arange(0.0, 1.0, 1.0 / 30.0)
+    path = ProbePath(np.array([0.0, 1.0]), np.array([[0.03, 0.02, 0.05], [0.03, 0.02, 0.03]]))
+    monkeypatch.setattr(stepper, "advance", failing)
+    model = build_model(mesh, 0.104, Material(5000.0, 0.44), SimulationConfig())
+    res = simulate(model, path, 0.005, frames, callback=lambda f, m: None)
+    assert res.status == "diverged" and "non-finite" in res.message
+    assert np.isnan(res.positions[-1]).all() and np.isfinite(res.positions[0]).all()
+    calls.clear()
+    calls.append(1)  # fail at once
+
+    def build(theta, factorize):
+        return build_model(mesh, 0.104, Material(float(theta[0]), 0.44), SimulationConfig(), factorize=factorize)
+
+    sens = simulate_sensitivities(build, np.array([5000.0]), path, 0.005, frames)
+    assert sens.result.status == "diverged"
