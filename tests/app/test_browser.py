@@ -37,6 +37,15 @@ def _until(fn, what: str, timeout: float = 60.0):
         time.sleep(0.2)
 
 
+def _viewer_connected(page, server, what: str = "the viewer tab"):
+    """Wait for the dashboard's viewer iframe to connect to the viewer server. Chromium
+    throttles an off-screen cross-origin iframe (the viewer's websocket may then never
+    open), so the iframe is scrolled into view first, as a user looking at it would."""
+    page.locator("#viewer-frame").scroll_into_view_if_needed()
+    page.frame_locator("#viewer-frame").locator("canvas").first.wait_for(timeout=60_000)
+    return _until(lambda: _state(server.url)["clients"] >= 1, what)
+
+
 def _canvas(page, frame=None):
     """The largest canvas of the viewer (the 3D view), in the dashboard's iframe or in ``frame``."""
     frame = frame or page.frame_locator("#viewer-frame")
@@ -121,8 +130,7 @@ def test_dashboard_job_viewer_and_icp_in_chromium(small_session, tmp_path, chrom
 
             # the viewer: show the run, the canvas is drawn, scrub the slider
             frame = page.frame_locator("#viewer-frame")
-            frame.locator("canvas").first.wait_for(timeout=60_000)
-            _until(lambda: _state(server.url)["clients"] >= 1, "the viewer client")
+            _viewer_connected(page, server, "the viewer client")
             t0 = time.monotonic()
             page.click(f"#jobs-table tr[data-job-id='{job_id}'] .view-btn")
             _until(lambda: _state(server.url)["sequence"] == "seq01", "the run in the viewer")

@@ -25,7 +25,7 @@ import pytest
 
 from tests.app._server import Server, store_finished_jobs
 from tests.app.conftest import needs_chromium
-from tests.app.test_browser import _canvas, _state, _until
+from tests.app.test_browser import _canvas, _state, _until, _viewer_connected
 
 pytestmark = [pytest.mark.slow, needs_chromium]
 
@@ -103,8 +103,7 @@ def test_diagnosis_summary_and_corrected_mesh_in_chromium(diagnosed, chromium, t
 
         # the viewer: the diagnosis's run, labelled with the E it used, with its corrected mesh
         frame = page.frame_locator("#viewer-frame")
-        frame.locator("canvas").first.wait_for(timeout=60_000)
-        _until(lambda: _state(server.url)["clients"] >= 1, "the viewer tab")
+        _viewer_connected(page, server)
         page.click("#jobs-table tr[data-job-id='1'] .view-btn")
         st = _until(lambda: (s := _state(server.url))["run_id"] == 1 and s, "the diagnosis run in the viewer")
         assert st["layers"] == ["cloud", "fem", "corrected", "probe"]
@@ -170,10 +169,7 @@ def test_diagnosis_layers_in_3d_in_chromium(diagnosed, chromium, tmp_path):
         page.goto(server.url + "/")
         page.wait_for_selector("body[data-ready='1']")
         frame = page.frame_locator("#viewer-frame")
-        # chromium pauses an off-screen cross-origin iframe: the viewer connects once it is scrolled to
-        page.locator("#viewer-frame").scroll_into_view_if_needed()
-        frame.locator("canvas").first.wait_for(timeout=60_000)
-        _until(lambda: _state(server.url)["clients"] >= 1, "the viewer tab")
+        _viewer_connected(page, server)
         page.click("#jobs-table tr[data-job-id='1'] .view-btn")
         st = _until(lambda: (s := _state(server.url))["run_id"] == 1 and s, "the diagnosis run in the viewer")
         assert st["diagnosis"]["colour_modes"] == ["error", "base_residual", "extended_residual", "change_gravity"]

@@ -90,7 +90,7 @@ def test_a_plan_job_refuses_a_job_that_is_not_a_diagnosis_of_its_session(small_s
 @pytest.mark.slow
 @needs_chromium
 def test_plan_in_3d_and_its_kinematics_in_chromium(planned, chromium, tmp_path):
-    from tests.app.test_browser import _canvas, _state, _until, _variance
+    from tests.app.test_browser import _canvas, _state, _until, _variance, _viewer_connected
 
     data, summary = planned
     server = Server(data, viewer=True)
@@ -105,10 +105,8 @@ def test_plan_in_3d_and_its_kinematics_in_chromium(planned, chromium, tmp_path):
         csv = httpx.get(server.url + href).text
         assert csv == (data / "jobs" / "2" / "kinematics.csv").read_text()
 
-        page.locator("#viewer-frame").scroll_into_view_if_needed()
         frame = page.frame_locator("#viewer-frame")
-        frame.locator("canvas").first.wait_for(timeout=60_000)
-        _until(lambda: _state(server.url)["clients"] >= 1, "the viewer tab")
+        _viewer_connected(page, server)
         time.sleep(1.0)
         canvas = _canvas(page)
         before = canvas.screenshot(path=str(tmp_path / "viewer-empty.png"))
