@@ -1,17 +1,19 @@
 """The candidate causes: each effect kind of SESSION_FORMAT.md as a fittable parameter vector.
 
 The fit spaces are declared by the kinds themselves (:meth:`core.simulation.effects.Effect.fit_space`);
-this module gives them for a session's phantom, and finds where the probe pressed into the
-top face (an inclusion's fits start below those points).
+this module gives them for a session's phantom, and finds where the probe pressed into it
+(the box's top face, or any part of another shape's surface): an inclusion's fits start
+below those points.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from core.preparation.shape import RestShape
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
 
-__all__ = ["Candidate", "candidates", "top_presses", "KINDS"]
+__all__ = ["Candidate", "candidates", "top_presses", "surface_presses", "phantom_context", "KINDS"]
 
 KINDS = tuple(EFFECT_KINDS)
 """Every effect kind of SESSION_FORMAT.md, in the order of the effect table."""
@@ -56,3 +58,66 @@ def top_presses(centres: np.ndarray, size, probe_radius: float, *, min_depth: fl
         if all(np.linalg.norm(p - q) >= merge for q in out):
             out.append(p)
     return np.array(out).reshape(-1, 2)
+
+
+def surface_presses(centres: np.ndarray, shape: RestShape, probe_radius: float, *, min_depth: float = 0.001,
+                    merge: float = 0.005) -> tuple[np.ndarray, np.ndarray]:
+    """Where the probe pressed into the rest phantom ``shape``: the rest-surface point
+    under the deepest point of each press and the outward normal there.
+
+    On the box (:class:`core.preparation.shape.BoxShape`) these are the presses into the
+    top face (:func:`top_presses`, at z = the box's height, normal +z), as before the
+    phantom could take any shape; on any other shape, every press whose sphere reaches
+    ``min_depth`` into the rest surface, its point the surface's nearest to the sphere's
+    centre at its deepest.
+
+    Args:
+        centres: (T, 3) probe sphere centres, m, phantom frame.
+        shape: the rest phantom. probe_radius: m.
+        min_depth: a press reaches at least this far into the rest surface, m.
+        merge: presses closer than this (m) to an earlier one are dropped.
+
+    Returns:
+        (points (K, 3), normals (K, 3)) float64, m and unit vectors, phantom frame.
+    """
+    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+    if shape.is_box:
+        xy = top_presses(c, shape.size, probe_radius, min_depth=min_depth, merge=merge)
+        return np.column_stack([xy, np.full(len(xy), shape.size[2])]), np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    depth = shape.penetration_depth(c, probe_radius) if c.size else np.zeros(0)
+    pressed = depth > min_depth
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
+    deepest = [a + int(np.argmax(depth[a:b])) for a, b in zip(edges[::2], edges[1::2])]
+    if not deepest:
+        return np.zeros((0, 3)), np.zeros((0, 3))
+    pts, nrm = shape.project(c[deepest])
+    keep: list[int] = []
+    for i, p in enumerate(pts):
+        if all(np.linalg.norm(p - pts[j]) >= merge for j in keep):
+            keep.append(i)
+    return pts[keep], nrm[keep]
+
+
+def phantom_context(prepared, names, *, merge: float = 0.005) -> PhantomContext:
+    """The :class:`core.simulation.effects.PhantomContext` of a prepared session for the
+    sequences ``names``: its size, nominal probe radius, rest shape, and the presses of
+    those sequences (:func:`surface_presses`, merged across sequences closer than
+    ``merge`` m).
+
+    Args:
+        prepared: a :class:`core.preparation.PreparedSession`. names: sequence names.
+
+    Raises:
+        KeyError: an unknown sequence. ValueError: the session's STL is not watertight.
+    """
+    shape = prepared.shape
+    pts, nrm = [], []
+    for n in names:
+        seq = prepared.sequences[n]
+        p, q = surface_presses(seq.probe.at(seq.frame_times), shape, prepared.probe_radius)
+        for a, b in zip(p, q):
+            if all(np.linalg.norm(a - o) >= merge for o in pts):
+                pts.append(a)
+                nrm.append(b)
+    return PhantomContext(prepared.size, prepared.probe_radius, np.array(pts).reshape(-1, 3),
+                          np.array(nrm).reshape(-1, 3), shape)

@@ -55,15 +55,16 @@ from typing import Callable
 
 import numpy as np
 
-from core.diagnosis.candidates import top_presses
+from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability
 from core.diagnosis.evidence import Directions, Evidence, Spec
-from core.diagnosis.fields import NOISE_GROUPS, FieldLayout
+from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
                                        reproduction)
 from core.diagnosis.nuisance import Nuisance
+from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
                                     test_error)
@@ -72,7 +73,7 @@ from core.identification.execution import Executor, SerialExecutor
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import youngs_model_form
 from core.identification.trials import Trial
-from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
+from core.simulation.effects import EFFECT_KINDS, FitSpace
 from core.preparation import PreparedSession
 from core.preparation.segments import informative_session
 from core.simulation.replay import noise_floor
@@ -215,17 +216,6 @@ def _floor_mesh(prepared: PreparedSession, cfg: DiagnosisConfig, ev: Evidence):
     return replay_mesh(prepared, cfg.grid, ev.fine_element_size if cfg.fine_grid else cfg.element_size)
 
 
-def field_layout(prepared: PreparedSession, cfg: DiagnosisConfig):
-    """The residual field's layout: bins on the box's faces, or patches of any phantom's
-    visible surface (``phantom.stl``; :class:`core.diagnosis.patches.PatchLayout`)."""
-    if getattr(prepared, "stl_path", None) is not None:
-        from core.diagnosis.patches import PatchLayout
-        from core.simulation.replay import replay_mesh
-
-        return PatchLayout(replay_mesh(prepared, cfg.grid, cfg.element_size), cfg.surface_patches)
-    return FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
-
-
 def diagnose_prepared(
     prepared: PreparedSession,
     config: DiagnosisConfig | None = None,
@@ -261,14 +251,9 @@ def diagnose_prepared(
         if not names:
             raise TissueTwinError(f"{prepared.path}: the diagnosis needs a '{role}' sequence (session.json roles)")
 
-    def presses(names):
-        pts = [p for n in names for p in top_presses(prepared.sequences[n].probe.at(prepared.sequences[n].frame_times),
-                                                       prepared.size, prepared.probe_radius)]
-        return np.array([p for i, p in enumerate(pts) if all(np.linalg.norm(p - q) >= 0.005 for q in pts[:i])]).reshape(-1, 2)
-
     seen = ev.names["train"] + ev.names["validation"]
-    ctx_fit = PhantomContext(prepared.size, prepared.probe_radius, presses(ev.names["train"]))
-    ctx_all = PhantomContext(prepared.size, prepared.probe_radius, presses(seen))
+    ctx_fit = phantom_context(prepared, ev.names["train"])
+    ctx_all = phantom_context(prepared, seen)
     cands = {k: EFFECT_KINDS[k].fit_space(ctx_fit) for k in cfg.kinds}
     rng = np.random.default_rng(cfg.seed)
     joint = ev.use_force

@@ -231,6 +231,9 @@ class Evidence:
         self.force_delta: dict[str, np.ndarray] = {}
         self.force_ratio: dict[str, float] = {}
         self.simulations = 0
+        self.indentation: dict[str, np.ndarray] = {}
+        """Per sequence: the nominal probe's depth into the rest phantom at each frame, m
+        (filled on first use; a curved shape's depth costs a proximity query)."""
         self.names = {role: [n for n, s in prepared.sequences.items() if s.role == role] for role in ("train", "validation", "test")}
         self.counts, self.raw_counts = {}, {}
         centres = layout.centres3()

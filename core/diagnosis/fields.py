@@ -29,6 +29,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from core.preparation.shape import BoxShape, RestShape
+
 
 __all__ = ["FieldLayout", "FACES", "NOISE_GROUPS", "face_residuals", "face_residuals_tangent", "frame_bins", "residual_field",
            "residual_field_tangent", "phase_labels", "PHASES"]
@@ -409,20 +411,17 @@ def phase_labels(times: np.ndarray, centres: np.ndarray, size, radius: float, *,
 
     Args:
         times: (F,) s. centres: (F, 3) probe sphere centres at those times, m, phantom frame.
-        size: (3,) box size, m. radius: probe radius, m.
+        size: the rest phantom (:class:`core.preparation.shape.RestShape`), or (3,) the
+            size of the box ``[0, size]``, m. radius: probe radius, m.
         speed: indentation rate (m/s) above which a contact counts as loading or
             unloading, and lateral speed above which it counts as sliding.
 
-    Indentation is the sphere's depth into the rest box (0 when clear): rest when it is
-    0, loading / unloading when it grows / shrinks faster than ``speed``, sliding when
+    Indentation is the sphere's depth into the rest phantom (0 when clear): rest when it
+    is 0, loading / unloading when it grows / shrinks faster than ``speed``, sliding when
     the probe moves sideways faster than ``speed`` while pressing, holding otherwise.
     """
-    size = np.asarray(size, dtype=np.float64)
-    inside = np.clip(centres, 0.0, size)
-    gap = np.linalg.norm(centres - inside, axis=1)
-    depth_out = np.maximum(radius - gap, 0.0)
-    depth_in = np.min(np.concatenate([centres, size - centres], axis=1), axis=1) + radius
-    depth = np.where(gap > 0, depth_out, depth_in)
+    shape = size if isinstance(size, RestShape) else BoxShape(size)
+    depth = np.maximum(shape.penetration_depth(centres, radius), 0.0) if len(centres) else np.zeros(0)
     t = np.asarray(times, dtype=np.float64)
     if t.size < 2:
         return np.zeros(t.size, dtype=int)

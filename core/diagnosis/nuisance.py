@@ -48,7 +48,6 @@ from typing import Sequence
 import numpy as np
 
 from core.diagnosis.evidence import Evidence, Spec
-from core.lab.probing import penetration_depth
 
 __all__ = ["Nuisance", "nuisance_columns", "VARIANTS", "BOUNDS"]
 
@@ -121,12 +120,14 @@ def _registration_columns(ev: Evidence, role: str) -> np.ndarray:
 
 
 def _indentation(ev: Evidence, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per frame of sequence ``name``: the probe sphere's depth into the rest box (m, >= 0),
+    """Per frame of sequence ``name``: the probe sphere's depth into the rest phantom (m, >= 0),
     its rate (m/s) and the sphere centres (F, 3), m, phantom frame."""
     seq = ev.prepared.sequences[name]
     t = seq.frame_times
     c = seq.probe.at(t)
-    depth = np.maximum(penetration_depth(c, ev.prepared.size, float(ev.prepared.probe_radius)), 0.0)
+    if name not in ev.indentation:
+        ev.indentation[name] = np.maximum(ev.prepared.shape.penetration_depth(c, float(ev.prepared.probe_radius)), 0.0)
+    depth = ev.indentation[name]
     rate = np.gradient(depth, t) if t.size > 1 else np.zeros_like(depth)
     return depth, rate, c
 

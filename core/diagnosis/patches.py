@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from core.simulation.mesh import TetMesh
 from core.simulation.metrics import surface_operator
 
-__all__ = ["PatchLayout", "SurfaceSampler", "sampler_of"]
+__all__ = ["PatchLayout", "SurfaceSampler", "sampler_of", "field_layout"]
 
 #: Index of the patch layout's noise group in :data:`core.diagnosis.fields.NOISE_GROUPS`.
 SURFACE_GROUP = 5
@@ -214,3 +214,23 @@ class PatchLayout:
         d, s = self._tree.query(p)
         out = self._patch_of_sample[s]
         return np.where(d <= self.max_distance, out, -1)
+
+
+def field_layout(prepared, cfg):
+    """The residual field's layout of a session: bins on the box's faces
+    (:class:`core.diagnosis.fields.FieldLayout`), or patches of any phantom's visible
+    surface (``phantom.stl``; :class:`PatchLayout` on the replay's mesh).
+
+    Args:
+        prepared: a :class:`core.preparation.PreparedSession`.
+        cfg: a :class:`core.diagnosis.DiagnosisConfig` (grid, element size, bins, patches).
+
+    Raises:
+        core.simulation.meshing.MeshingError: the STL cannot be meshed.
+    """
+    from core.diagnosis.fields import FieldLayout
+    from core.simulation.replay import replay_mesh
+
+    if getattr(prepared, "stl_path", None) is not None:
+        return PatchLayout(replay_mesh(prepared, cfg.grid, cfg.element_size), cfg.surface_patches)
+    return FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)

@@ -12,7 +12,6 @@ from core.diagnosis.evidence import Evidence, FieldRun
 from core.diagnosis.fields import NOISE_GROUPS, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
 from core.identification.verdict import MAX_RATIO
-from core.lab.probing import penetration_depth
 from core.simulation.effects import FitSpace
 from core.preparation import PreparedSession
 __all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation",
@@ -79,7 +78,7 @@ def summary(eng: Evidence, runs: list[FieldRun], sigma2: float, prepared: Prepar
         n = eng.raw_counts[r.sequence].astype(np.float64)
         fld = eng.field(r)
         seq = prepared.sequences[r.sequence]
-        ph = phase_labels(seq.frame_times, r.probe_centres, prepared.size, prepared.probe_radius)
+        ph = phase_labels(seq.frame_times, r.probe_centres, prepared.shape, prepared.probe_radius)
         has = n > 0
         excess = np.where(has, fld**2 - sigma2 / np.where(has, n, 1.0), 0.0)  # n: noise-weighted counts
         for k, p in enumerate(PHASES):
@@ -183,11 +182,13 @@ def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:
     """How the sequences ``names`` palpated the phantom: what a kind's detectability depends on.
 
     Returns:
-        {"top_presses": K presses into the top face, "side_presses": presses into a side
-        face, "slides": presses that slid along the surface (probe moving sideways at
+        {"top_presses": K presses into the top face (on another shape: where its
+        surface faces up, normal within 60 degrees of +z), "side_presses": presses into a
+        side face (elsewhere), "slides": presses that slid along the surface (probe moving sideways at
         more than 2 mm/s while pressing, for at least 0.2 s), "force": whether every
         sequence has force columns, "seconds": total duration}.
     """
+    shape = prepared.shape
     size = np.asarray(prepared.size, dtype=np.float64)
     r = float(prepared.probe_radius)
     top = side = slides = 0
@@ -197,10 +198,17 @@ def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:
         t = s.frame_times
         c = s.probe.at(t)
         seconds += float(t[-1] - t[0]) if t.size > 1 else 0.0
-        pressed = penetration_depth(c, size, r) > 0.0005
-        beside = (c[:, 2] < size[2]) & ((c[:, 0] < 0) | (c[:, 0] > size[0]) | (c[:, 1] < 0) | (c[:, 1] > size[1]))
+        depth = shape.penetration_depth(c, r)
+        pressed = depth > 0.0005
         edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
-        ph = phase_labels(t, c, size, r)
+        if shape.is_box:
+            beside = (c[:, 2] < size[2]) & ((c[:, 0] < 0) | (c[:, 0] > size[0]) | (c[:, 1] < 0) | (c[:, 1] > size[1]))
+        else:  # a press into another shape is a side press where the surface faces more sideways than up
+            beside = np.zeros(len(c), dtype=bool)
+            deepest = [a + int(np.argmax(depth[a:b])) for a, b in zip(edges[::2], edges[1::2])]
+            if deepest:
+                beside[deepest] = shape.project(c[deepest])[1][:, 2] < 0.5
+        ph = phase_labels(t, c, shape, r)
         for a, b in zip(edges[::2], edges[1::2]):
             if np.any(beside[a:b]):
                 side += 1

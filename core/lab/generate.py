@@ -634,6 +634,12 @@ def generate_session(
         from core.lab.surface_probing import ReachableSurface
 
         reachable = ReachableSurface(*phantom.surface)
+        if "inclusion" in by_kind:
+            inc = by_kind["inclusion"]
+            if float(reachable.clearance(np.asarray(inc["center"], float)[None])[0]) >= 0.0:
+                shutil.rmtree(workdir, ignore_errors=True)
+                raise LabError(f"the inclusion's centre {inc['center']} m lies outside the {shape if phantom_stl is None else 'STL'} "
+                               f"phantom (bounds {np.round(reachable.mesh.bounds, 4).tolist()} m): give a centre inside it")
 
     # ---- session-wide draws, in a fixed order -----------------------------------------
     rng = np.random.default_rng(seed)

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from core.preparation.shape import BoxShape
+
 __all__ = [
     "FACE_NORMALS",
     "INTERPOLATIONS",
@@ -249,13 +251,7 @@ def penetration_depth(centres: np.ndarray, size, radius: float) -> np.ndarray:
     """(K,) how deep a sphere of ``radius`` at ``centres`` (K, 3) reaches into the rest box
     ``[0, size]``, m: ``radius - distance(centre, box)`` (negative when clear of it).
     For centres inside the box the distance is taken as minus the depth of the centre."""
-    c = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
-    size = np.asarray(size, dtype=np.float64)
-    d_out = np.maximum(np.maximum(-c, c - size), 0.0)
-    outside = np.linalg.norm(d_out, axis=1)
-    inside = np.min(np.concatenate([c, size - c], axis=1), axis=1)
-    dist = np.where(outside > 0, outside, -np.maximum(inside, 0.0))
-    return radius - dist
+    return BoxShape(size).penetration_depth(centres, radius)
 
 
 class PathBuilder:

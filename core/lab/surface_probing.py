@@ -19,12 +19,14 @@ from __future__ import annotations
 import numpy as np
 
 from core.lab.probing import PathBuilder, Poke, ProbePlan, ProbeTrajectory, ProbingConfig, Stroke, tool_rotation
+from core.preparation.shape import SurfaceShape
 
 __all__ = ["ReachableSurface", "plan_surface_sequence", "surface_penetration_depth"]
 
 
-class ReachableSurface:
-    """A phantom's rest surface with what the planner needs of it.
+class ReachableSurface(SurfaceShape):
+    """A phantom's rest surface (:class:`core.preparation.shape.SurfaceShape`) with what
+    the planner needs of it besides: area-uniform sampling of its triangles.
 
     Args:
         vertices: (V, 3) float64, m, phantom frame. faces: (F, 3) int64, outward normals.
@@ -32,28 +34,6 @@ class ReachableSurface:
     Raises:
         ValueError: not a watertight, consistently oriented surface.
     """
-
-    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
-        import trimesh  # noqa: PLC0415 (heavy)
-
-        self.mesh = trimesh.Trimesh(np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64),
-                                    process=True)
-        if not self.mesh.is_watertight or self.mesh.volume <= 0:
-            raise ValueError("the phantom surface must be watertight with outward normals")
-        self.normals = np.asarray(self.mesh.face_normals, dtype=np.float64)
-        self.areas = np.asarray(self.mesh.area_faces, dtype=np.float64)
-        self.top = float(self.mesh.bounds[1, 2])
-        self._query = trimesh.proximity.ProximityQuery(self.mesh)
-
-    def clearance(self, points: np.ndarray) -> np.ndarray:
-        """(K,) distance of ``points`` (K, 3) from the surface, m: positive outside,
-        negative inside (trimesh's signed distance, negated)."""
-        return -np.asarray(self._query.signed_distance(np.asarray(points, dtype=np.float64).reshape(-1, 3)))
-
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(closest surface points (K, 3), their outward face normals (K, 3))."""
-        closest, _, tri = self._query.on_surface(np.asarray(points, dtype=np.float64).reshape(-1, 3))
-        return closest, self.normals[tri]
 
     def sample(self, rng: np.random.Generator, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One point drawn area-uniformly on the ``allowed`` (F,) bool triangles, and its
@@ -71,7 +51,7 @@ def surface_penetration_depth(centres: np.ndarray, surface: ReachableSurface, ra
     """(K,) how deep a sphere of ``radius`` at ``centres`` (K, 3) reaches into the rest
     phantom, m (``radius - clearance``; negative when clear): the STL counterpart of
     :func:`core.lab.probing.penetration_depth`."""
-    return radius - surface.clearance(centres)
+    return surface.penetration_depth(centres, radius)
 
 
 def plan_surface_sequence(

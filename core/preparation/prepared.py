@@ -19,6 +19,7 @@ import numpy as np
 
 from core.preparation.calibration import Calibration
 from core.preparation.probe import ProbePath
+from core.preparation.shape import RestShape, rest_shape
 
 __all__ = ["Clouds", "PrepareConfig", "PreparedSequence", "PreparedSession"]
 
@@ -182,6 +183,15 @@ class PreparedSession:
     reference: np.ndarray | None = None
     cache_key: str = ""
     stl_path: Path | None = None
+
+    @property
+    def shape(self) -> RestShape:
+        """The rest phantom's geometry (:func:`core.preparation.shape.rest_shape`): the
+        ``phantom.stl`` surface when the session has one, else the box of ``size``.
+
+        Raises:
+            ValueError: the STL is not a watertight surface."""
+        return rest_shape(self.size, self.stl_path)
 
     def rest_frames(self, name: str, *, settle: float = 1.0, clearance: float = 0.002) -> np.ndarray:
         """Indices of frames of sequence ``name`` where the phantom is at rest: the probe

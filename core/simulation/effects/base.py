@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Callable, ClassVar
 import numpy as np
 
 from core.errors import SimulationError
+from core.preparation.shape import BoxShape, RestShape
 
 if TYPE_CHECKING:  # pragma: no cover
     from core.simulation.model import ModelBuilder
@@ -23,16 +24,28 @@ class PhantomContext:
     """What a kind's fit space, sizes and examples need to know of a session.
 
     Attributes:
-        size: (3,) float64 box size, m (x length, y width, z height), phantom frame.
+        size: (3,) float64 box size, m (x length, y width, z height), phantom frame; for a
+            phantom of another shape, the upper corner of its bounds.
         probe_radius: the nominal probe radius of session.json, m.
-        presses: (K, 2) float64 (x, y), m, phantom frame, where the probe pressed into
-            the top face (the deepest point of each press; may be empty). An inclusion
-            changes the data only near where the probe pressed.
+        presses: (K, 3) float64, m, phantom frame: the rest-surface point under the
+            deepest point of each press (may be empty). An inclusion changes the data only
+            near where the probe pressed. (K, 2) (x, y) is read as presses into the top of
+            the box (z = ``size[2]``).
+        press_normals: (K, 3) float64 outward unit normals of the rest surface at
+            ``presses``; None: +z (presses into the box's top).
+        shape: the rest phantom (:class:`core.preparation.shape.RestShape`); None: the box
+            ``[0, size]``.
+
+    Raises:
+        SimulationError: a size that is not 3 positive lengths, or presses and normals
+            of different counts.
     """
 
     size: np.ndarray
     probe_radius: float = 0.005
-    presses: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    presses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    press_normals: np.ndarray | None = None
+    shape: RestShape | None = None
 
     def __post_init__(self):
         size = np.asarray(self.size, dtype=np.float64).reshape(-1)
@@ -40,7 +53,36 @@ class PhantomContext:
             raise SimulationError(f"phantom size must be 3 positive lengths in m, got {self.size!r}")
         object.__setattr__(self, "size", size)
         object.__setattr__(self, "probe_radius", _positive("probe radius", self.probe_radius))
-        object.__setattr__(self, "presses", np.asarray(self.presses, dtype=np.float64).reshape(-1, 2))
+        pr = np.asarray(self.presses, dtype=np.float64)
+        pr = pr.reshape(-1, pr.shape[-1] if pr.ndim == 2 else 3) if pr.size else np.zeros((0, 3))
+        if pr.shape[1] == 2:
+            pr = np.column_stack([pr, np.full(len(pr), size[2])])
+        if pr.shape[1] != 3:
+            raise SimulationError(f"presses must be (K, 2) or (K, 3) points, got shape {pr.shape}")
+        nrm = (np.tile([0.0, 0.0, 1.0], (len(pr), 1)) if self.press_normals is None
+               else np.asarray(self.press_normals, dtype=np.float64).reshape(-1, 3))
+        if nrm.shape != pr.shape:
+            raise SimulationError(f"{len(pr)} presses but {len(nrm)} press normals")
+        object.__setattr__(self, "presses", pr)
+        object.__setattr__(self, "press_normals", nrm)
+        object.__setattr__(self, "shape", self.shape if self.shape is not None else BoxShape(size))
+
+    def under(self, depth: float) -> np.ndarray:
+        """(K, 3) float64, m: the points ``depth`` (m) under each press, along the inward
+        normal (for the box's top presses: ``size[2] - depth`` below each (x, y))."""
+        return self.presses - float(depth) * self.press_normals
+
+    def default_press(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rest-surface point (3,) and outward normal (3,) used when nothing was
+        pressed: the middle of the box's top, or the highest point of another shape."""
+        if self.shape.is_box:
+            return np.array([self.size[0] / 2, self.size[1] / 2, self.size[2]]), np.array([0.0, 0.0, 1.0])
+        top = np.array([self.size[0] / 2, self.size[1] / 2, self.size[2] + 1.0])
+        if hasattr(self.shape, "mesh"):
+            v = np.asarray(self.shape.mesh.vertices)
+            top = v[int(np.argmax(v[:, 2]))] + np.array([0.0, 0.0, 0.01])
+        p, n = self.shape.project(top[None])
+        return p[0], n[0]
 
 
 @dataclass(frozen=True)

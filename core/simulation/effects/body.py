@@ -109,37 +109,41 @@ class Inclusion(Effect):
 
     @classmethod
     def assumptions(cls, ctx):
-        # a 10 mm sphere whose top is 2 mm under the top face, under each press (a
-        # stiff inclusion shows where the probe pressed over it, and only there)
-        sz = float(ctx.size[2])
-        pts = ctx.presses if len(ctx.presses) else np.array([[ctx.size[0] / 2, ctx.size[1] / 2]])
-        return tuple({"center": [float(x), float(y), sz - 0.012], "radius": 0.010} for x, y in pts)
+        # a 10 mm sphere whose top is 2 mm under the surface, under each press (a stiff
+        # inclusion shows where the probe pressed over it, and only there)
+        pts = ctx.under(0.012) if len(ctx.presses) else _under_default(ctx, 0.012)[None]
+        return tuple({"center": [float(v) for v in ctx.shape.keep_inside(c, 0.010)], "radius": 0.010} for c in pts)
 
     @classmethod
     def sized(cls, size, ctx, center=None, radius=0.010):
-        c = center if center is not None else (ctx.size[0] / 2, ctx.size[1] / 2, float(ctx.size[2]) - 0.012)
-        return cls(center=_inside(np.asarray(c, float), float(radius), ctx.size), radius=radius,
+        c = np.asarray(center, float) if center is not None else _under_default(ctx, 0.012)
+        return cls(center=tuple(float(v) for v in ctx.shape.keep_inside(c, float(radius))), radius=radius,
                    stiffness_ratio=float(size))
 
     @classmethod
     def fit_space(cls, ctx):
-        # starts: 8 mm spheres 4x stiffer, 12 mm below the top, under the presses (else a
-        # 3 x 2 grid). The sphere stays inside the box (centre at least a radius from every
-        # face): with the box as the centre's only bound, fits wandered to an edge, where a
-        # sphere mostly outside the phantom stiffens a few corner elements and soaks up
-        # unrelated error.
-        sx, sy, sz = (float(v) for v in ctx.size)
+        # starts: 8 mm spheres 4x stiffer, 12 mm under the surface along its inward
+        # normal, under the presses (else a 3 x 2 grid over the box's top, or the highest
+        # point of another shape). The sphere stays inside the phantom (centre at least a
+        # radius from its surface): with the box as the centre's only bound, fits wandered
+        # to an edge, where a sphere mostly outside the phantom stiffens a few corner
+        # elements and soaks up unrelated error.
+        shape = ctx.shape
+        lo, hi = np.asarray(shape.lower, float), np.asarray(ctx.size, float)
 
         def inside(x):
             x = x.copy()
-            x[:3] = np.clip(x[:3], x[3], ctx.size - x[3])
+            x[:3] = shape.keep_inside(x[:3], x[3])
             return x
 
         if len(ctx.presses):
-            centres = [(float(x), float(y)) for x, y in ctx.presses]
+            centres = list(ctx.under(0.012))
+        elif shape.is_box:
+            sx, sy, sz = (float(v) for v in ctx.size)
+            centres = [np.array([cx, cy, sz - 0.012]) for cx in (sx / 6, sx / 2, 5 * sx / 6) for cy in (sy / 4, 3 * sy / 4)]
         else:
-            centres = [(cx, cy) for cx in (sx / 6, sx / 2, 5 * sx / 6) for cy in (sy / 4, 3 * sy / 4)]
-        starts = tuple(inside(_a(cx, cy, sz - 0.012, 0.008, math.log10(4.0))) for cx, cy in centres)
+            centres = [_under_default(ctx, 0.012)]
+        starts = tuple(inside(_a(c[0], c[1], c[2], 0.008, math.log10(4.0))) for c in centres)
 
         def params(x):
             return {"center": [float(x[0]), float(x[1]), float(x[2])], "radius": float(x[3]),
@@ -148,21 +152,29 @@ class Inclusion(Effect):
         return FitSpace(
             "inclusion", ("center_x", "center_y", "center_z", "radius", "log10_stiffness_ratio"),
             ("m", "m", "m", "m", "-"), _a(0.002, 0.002, 0.002, 0.001, 0.1),
-            _a(0.0, 0.0, 0.0, 0.003, -1.0), _a(sx, sy, sz, 0.5 * min(sx, sy, sz), 1.5), starts,
+            _a(lo[0], lo[1], lo[2], 0.003, -1.0), _a(hi[0], hi[1], hi[2], 0.5 * float(np.min(hi - lo)), 1.5), starts,
             lambda x: {"kind": "inclusion", **params(x)}, params, inside, searches=len(starts),
         )
 
     @classmethod
     def example(cls, ctx, rng):
-        # 9 mm, 6x stiffer, its top 2 mm under the top face, over the middle of the top
+        # 9 mm, 6x stiffer, its top 2 mm under the surface, over the middle of the top
         sx, sy, sz = (float(v) for v in ctx.size)
-        c = (rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.011)
-        return cls(center=c, radius=0.009, stiffness_ratio=6.0)
+        if ctx.shape.is_box:
+            c = np.array([rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.011])
+        else:
+            lo = np.asarray(ctx.shape.lower, float)
+            above = lo + np.array([rng.uniform(0.3, 0.7), rng.uniform(0.35, 0.65), 0.0]) * (ctx.size - lo)
+            above[2] = sz + 0.05
+            p, n = ctx.shape.project(above[None])
+            c = p[0] - 0.011 * n[0]
+        return cls(center=tuple(float(v) for v in ctx.shape.keep_inside(c, 0.009)), radius=0.009, stiffness_ratio=6.0)
 
 
-def _inside(c: np.ndarray, r: float, size: np.ndarray) -> tuple[float, float, float]:
-    """A sphere centre (3,) m moved, if needed, to lie at least a radius inside the box."""
-    return tuple(float(v) for v in np.clip(c, r, np.asarray(size) - r))
+def _under_default(ctx, depth: float) -> np.ndarray:
+    """(3,) m: ``depth`` under the context's default press point along the inward normal."""
+    p, n = ctx.default_press()
+    return p - float(depth) * n
 
 
 @dataclass(frozen=True)
