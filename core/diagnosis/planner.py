@@ -4,11 +4,13 @@ confounded effect kinds decidable on this phantom.
 Method (optimal experimental design on the diagnosis's own signatures, in the spirit of a
 D-/A-optimal design on the Fisher information of each kind's size; Pukelsheim 2006):
 
-1. **Candidate moves** within the limits (:class:`PlanLimits`): presses into the top at a
-   grid of points, slides across the top along x and along y, presses into the middle of
-   each side face. Every move starts and ends at a safe height above the phantom, presses
-   along a face's inward normal no deeper than ``max_depth``, keeps its contact points
-   ``edge_margin`` inside the face and moves no faster than ``speed`` in contact.
+1. **Candidate moves** within the limits (:class:`PlanLimits`; :mod:`core.diagnosis.moves`):
+   on the box, presses into the top at a grid of points, slides across the top along x
+   and along y, presses into the middle of each side face; on any other shape, presses at
+   the seen surface's patches reachable from above and slides along the surface. Every
+   move starts and ends at a safe height above the phantom, presses along the surface's
+   inward normal no deeper than ``max_depth``, keeps its contact points inside the
+   margins and moves no faster than ``speed`` in contact.
 2. **Expected evidence of each move** for each kind: the move is replayed with the base
    model of the diagnosis and with the kind at its reference size (its
    :meth:`~core.simulation.effects.Effect.assumptions`); the change of the weighted
@@ -40,184 +42,22 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Spec
-from core.diagnosis.fields import FieldLayout
+from core.diagnosis.moves import Move, PlanError, PlanLimits, candidate_moves, move_path, surface_moves
+from core.diagnosis.patches import field_layout
 from core.diagnosis.nuisance import nuisance_columns
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
-from core.lab.probing import ProbeTrajectory, penetration_depth
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
 from core.preparation.probe import ProbePath
 from core.preparation import PreparedSequence, PreparedSession
-__all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_inputs", "plan_experiment", "write_plan",
-           "NOMINAL_FORCE_NOISE"]
 
-MIN_JERK_PEAK = 15.0 / 8.0
-"""Peak over mean speed of a minimum-jerk segment (Flash & Hogan 1985)."""
+__all__ = ["PlanLimits", "PlanError", "Move", "Plan", "candidate_moves", "plan_inputs", "plan_experiment", "write_plan",
+           "NOMINAL_FORCE_NOISE", "surface_moves"]
 
 NOMINAL_FORCE_NOISE = 0.01
 """Force noise per axis assumed for a session that recorded no force, N (a dVRK force estimate)."""
 
 Callback = Callable[[float, str], None]
-
-
-class PlanError(TissueTwinError):
-    """No palpation within the limits can reach the phantom (the message says why)."""
-
-
-@dataclass(frozen=True)
-class PlanLimits:
-    """What a plan may ask of the robot.
-
-    Attributes:
-        max_depth: deepest indentation of the sphere below the rest surface, m.
-        speed: fastest probe speed while in contact, m/s.
-        travel_speed: speed of moves in free space, m/s.
-        edge_margin: contact points stay this far inside their face's edges, m.
-        bottom_margin: side contacts stay this far above the bottom plus a radius, m.
-        safe_height: gap between the sphere and the top while travelling, m.
-        hold: time held at full depth, s.
-        slide_length: length of a slide across the top, m.
-        duration: most seconds of probing in the plan.
-        camera_rate: frame rate of the camera the plan assumes, Hz (the session's).
-    """
-
-    max_depth: float = 0.008
-    speed: float = 0.010
-    travel_speed: float = 0.03
-    edge_margin: float = 0.008
-    bottom_margin: float = 0.006
-    safe_height: float = 0.010
-    hold: float = 1.0
-    slide_length: float = 0.010
-    duration: float = 20.0
-    camera_rate: float = 15.0
-
-
-@dataclass(frozen=True)
-class Move:
-    """One candidate move of the probe.
-
-    Attributes:
-        name: short id. description: plain language ("slide 10 mm across the top ...").
-        face: "+z" or a side face. knots_t: (K,) s from the move's start. knots_p: (K, 3)
-            sphere centres, m, phantom frame (minimum-jerk between knots).
-    """
-
-    name: str
-    description: str
-    face: str
-    knots_t: np.ndarray
-    knots_p: np.ndarray
-
-    @property
-    def duration(self) -> float:
-        return float(self.knots_t[-1])
-
-
-def _press(name, description, face, start_above, approach, pressed, slide_to, lim: PlanLimits) -> Move:
-    t, p = [0.0], [np.asarray(start_above, float)]
-
-    def go(target, speed):
-        target = np.asarray(target, float)
-        d = float(np.linalg.norm(target - p[-1]))
-        if d > 1e-9:
-            # minimum jerk peaks at 15/8 of a segment's mean speed: ``speed`` is the peak
-            t.append(t[-1] + max(MIN_JERK_PEAK * d / speed, 0.1))
-            p.append(target)
-
-    def wait(dt):
-        t.append(t[-1] + dt)
-        p.append(p[-1].copy())
-
-    go(approach, lim.travel_speed)
-    go(pressed, lim.speed)
-    wait(lim.hold)
-    if slide_to is not None:
-        go(slide_to, lim.speed)
-        wait(0.5 * lim.hold)
-        go(slide_to + (approach - pressed), lim.speed)
-    else:
-        go(approach, lim.speed)
-    go(start_above if slide_to is None else np.array([p[-1][0], p[-1][1], start_above[2]]), lim.travel_speed)
-    wait(1.0)  # back at rest before the next move
-    return Move(name, description, face, np.asarray(t), np.asarray(p))
-
-
-def candidate_moves(size, radius: float, limits: PlanLimits | None = None) -> list[Move]:
-    """The moves a plan chooses from on a box of ``size`` (3,) m with a probe of ``radius`` m.
-
-    Raises:
-        PlanError: the box leaves no room for a contact point within the margins, or the
-            limits allow no indentation.
-    """
-    lim = limits or PlanLimits()
-    size = np.asarray(size, dtype=np.float64)
-    sx, sy, sz = (float(v) for v in size)
-    m = lim.edge_margin
-    if not lim.max_depth > 0.0005:
-        raise PlanError(f"the depth limit {lim.max_depth * 1e3:.2f} mm allows no press the data could see (at least 0.5 mm)")
-    if sx <= 2 * m or sy <= 2 * m:
-        raise PlanError(f"the top face ({sx * 1e3:.1f} x {sy * 1e3:.1f} mm) has no point {m * 1e3:.0f} mm from its edges")
-    d = float(lim.max_depth)
-    z_safe = sz + radius + lim.safe_height
-    clear = 0.003
-    moves: list[Move] = []
-    xs = np.linspace(m, sx - m, 4)[1:3] if sx > 4 * m else [sx / 2]
-    ys = [sy / 2] if sy < 4 * m else [m + (sy - 2 * m) / 3, sy - m - (sy - 2 * m) / 3]
-    for x in xs:
-        for y in ys:
-            top = np.array([x, y, sz])
-            moves.append(_press(f"press-top-{x * 1e3:.0f}-{y * 1e3:.0f}",
-                                f"press the top at x = {x * 1e3:.0f} mm, y = {y * 1e3:.0f} mm to {d * 1e3:.0f} mm "
-                                f"at {lim.speed * 1e3:.0f} mm/s, hold {lim.hold:.1f} s",
-                                "+z", top + [0, 0, radius + lim.safe_height], top + [0, 0, radius + clear],
-                                top + [0, 0, radius - d], None, lim))
-    L = float(lim.slide_length)
-    for axis, (lo_u, hi_u) in ((0, (m, sx - m)), (1, (m, sy - m))):
-        if hi_u - lo_u < L:
-            continue
-        c = np.array([sx / 2, sy / 2, sz])
-        a = c.copy()
-        a[axis] = c[axis] - L / 2
-        b = c.copy()
-        b[axis] = c[axis] + L / 2
-        name = "xy"[axis]
-        moves.append(_press(f"slide-top-{name}",
-                            f"press the top at its centre to {d * 1e3:.0f} mm and slide {L * 1e3:.0f} mm along +{name} "
-                            f"at {lim.speed * 1e3:.0f} mm/s",
-                            "+z", a + [0, 0, radius + lim.safe_height], a + [0, 0, radius + clear],
-                            a + [0, 0, radius - d], b + [0, 0, radius - d], lim))
-    zmid = max(sz / 2, lim.bottom_margin + radius)
-    if zmid < sz - m:
-        for face, n, u in (("+x", (1, 0, 0), (sx, sy / 2)), ("-x", (-1, 0, 0), (0.0, sy / 2)),
-                           ("+y", (0, 1, 0), (sx / 2, sy)), ("-y", (0, -1, 0), (sx / 2, 0.0))):
-            n = np.array(n, dtype=np.float64)
-            pt = np.array([u[0], u[1], zmid])
-            above = pt + n * (radius + clear + 0.003)
-            above[2] = z_safe
-            moves.append(_press(f"press-{face}", f"press the {face} face at mid height ({zmid * 1e3:.0f} mm) to "
-                                f"{d * 1e3:.0f} mm at {lim.speed * 1e3:.0f} mm/s, hold {lim.hold:.1f} s",
-                                face, above, pt + n * (radius + clear), pt + n * (radius - d), None, lim))
-    for mv in moves:
-        _check_move(mv, size, radius, lim)
-    if not moves:
-        raise PlanError("no move fits the phantom within the limits")
-    return moves
-
-
-def _check_move(mv: Move, size: np.ndarray, radius: float, lim: PlanLimits) -> None:
-    """Raise PlanError if the move reaches deeper than the limit or leaves its face."""
-    tr = ProbeTrajectory(mv.knots_t, mv.knots_p)
-    t = np.arange(0.0, mv.duration + 1e-9, 0.005)
-    c = tr(t)
-    depth = penetration_depth(c, size, radius)
-    if depth.max() > lim.max_depth + 1e-6:
-        raise PlanError(f"move {mv.name} would press {depth.max() * 1e3:.2f} mm deep (limit {lim.max_depth * 1e3:.2f} mm)")
-    inside = depth > 0
-    if np.any(inside):
-        lo, hi = -radius, size + radius
-        if np.any(c[inside] < lo) or np.any(c[inside] > hi):
-            raise PlanError(f"move {mv.name} would touch the phantom outside its faces")
 
 
 @dataclass(frozen=True)
@@ -265,7 +105,7 @@ class Plan:
         }
 
 
-def _virtual_session(prepared: PreparedSession, path: ProbePath, rate: float, layout: FieldLayout) -> PreparedSession:
+def _virtual_session(prepared: PreparedSession, path: ProbePath, rate: float, layout) -> PreparedSession:
     """A session whose sequences follow ``path`` and whose "clouds" are one point at every
     bin centre (the signatures are differences of models; counts are set by the caller)."""
     t = np.arange(0.0, float(path.t[-1]) + 1e-9, 1.0 / rate)
@@ -286,34 +126,6 @@ def _mean_counts(ev: Evidence) -> np.ndarray:
         tot += c.sum(axis=0)
         seen += (c > 0).sum(axis=0)
     return np.where(seen > 0, tot / np.maximum(seen, 1), 0.0)
-
-
-def _move_path(moves: Sequence[Move], size, radius: float, lim: PlanLimits) -> tuple[np.ndarray, np.ndarray]:
-    """Knots of the moves played one after the other (each starts where the last ended, at
-    a safe height), sampled every 10 ms."""
-    t0 = 0.0
-    ts, ps = [], []
-    z_safe = float(size[2]) + radius + lim.safe_height
-    prev = None
-    for mv in moves:
-        kt, kp = mv.knots_t, mv.knots_p
-        if prev is not None:
-            # travel at the safe height from the last move's end to this one's start
-            hop = np.array([kp[0][0], kp[0][1], max(z_safe, kp[0][2])])
-            d = float(np.linalg.norm(hop - prev))
-            if d > 1e-9:
-                t0 += max(d / lim.travel_speed, 0.1)
-                ts.append(t0)
-                ps.append(hop)
-        ts += list(t0 + kt)
-        ps += list(kp)
-        t0 += float(kt[-1])
-        prev = kp[-1]
-    kt, kp = np.asarray(ts), np.asarray(ps)
-    keep = np.concatenate([[True], np.diff(kt) > 1e-9])
-    traj = ProbeTrajectory(kt[keep], kp[keep])
-    t = np.arange(0.0, traj.duration + 1e-9, 0.01)
-    return t, traj(t)
 
 
 def _critical(alpha: float, n_kinds: int) -> float:
@@ -412,11 +224,15 @@ def plan_experiment(
         targets = {k: "asked for" for k in kinds}
     size = np.asarray(prepared.size, dtype=np.float64)
     radius = float(prepared.probe_radius)
-    moves = candidate_moves(size, radius, lim)
+    shape = prepared.shape
+    session_cfg = replace(cfg, fine_grid=None)
+    layout = field_layout(prepared, cfg)
+    if shape.is_box:
+        moves = candidate_moves(size, radius, lim)
+    else:  # presses at the seen surface's patches
+        moves = surface_moves(shape, radius, (layout.centres3(), layout.normals3()), lim)
 
     # the session's camera coverage and noise
-    session_cfg = replace(cfg, fine_grid=None)
-    layout = FieldLayout(tuple(float(v) for v in size), cfg.layout_bins, side_rows=cfg.side_rows)  # box only (issue 18)
     ev0 = Evidence(prepared, session_cfg, executor, layout)
     base_runs = ev0.runs([[]], "train")[0] + ev0.runs([[]], "validation")[0]
     ss = np.sum([r.ss for r in base_runs], axis=0)
@@ -427,11 +243,17 @@ def plan_experiment(
     counts = _mean_counts(ev0)
     force_sigma = ev0.force_sigma if ev0.use_force else np.full(3, NOMINAL_FORCE_NOISE)
     record_force = not ev0.use_force
-    ctx = PhantomContext(size, radius, np.array([[m.knots_p[2][0], m.knots_p[2][1]] for m in moves if m.face == "+z"]))
+    if shape.is_box:
+        ctx = PhantomContext(size, radius, np.array([[m.knots_p[2][0], m.knots_p[2][1]] for m in moves if m.face == "+z"]))
+    else:  # under each press: its contact point (approach minus the radius and clearance along the normal)
+        presses = [m for m in moves if m.name.startswith("press-")]
+        normals = np.array([(m.knots_p[1] - m.knots_p[2]) / np.linalg.norm(m.knots_p[1] - m.knots_p[2]) for m in presses])
+        points = np.array([m.knots_p[2] - normals[i] * (radius - lim.max_depth) for i, m in enumerate(presses)])
+        ctx = PhantomContext(size, radius, points.reshape(-1, 3), normals.reshape(-1, 3), shape)
     crit = _critical(cfg.alpha, len(all_kinds))
 
     def evidence_for(move_list):
-        t, c = _move_path(move_list, size, radius, lim)
+        t, c = move_path(move_list, size, radius, lim)
         path = ProbePath(t, c)
         virt = _virtual_session(prepared, path, lim.camera_rate, layout)
         ev = Evidence(virt, replace(session_cfg, use_force=False), executor, layout)
@@ -493,7 +315,7 @@ def plan_experiment(
         size_k = cls.size_at(s) if math.isfinite(s) else math.inf
         predicted[k] = None if not math.isfinite(size_k) or size_k > cls.max_size else float(size_k)
         current[k] = entry(k)[0]
-    t, c = _move_path(chosen, size, radius, lim)
+    t, c = move_path(chosen, size, radius, lim)
     T = np.asarray(prepared.calibration.T_phantom_robot, dtype=np.float64)
     Tinv = np.linalg.inv(T)
     robot = c @ Tinv[:3, :3].T + Tinv[:3, 3]

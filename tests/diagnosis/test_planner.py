@@ -44,6 +44,40 @@ def test_an_unreachable_phantom_is_an_error_that_says_why():
         candidate_moves(SIZE, RADIUS, PlanLimits(max_depth=0.0002))
 
 
+def test_moves_on_a_dome_press_along_its_normals_within_the_limits():
+    from core.diagnosis.moves import surface_moves
+    from core.lab.shapes import dome_surface
+    from core.preparation.shape import SurfaceShape
+
+    dome = SurfaceShape(*dome_surface(0.035, 0.025))
+    rng = np.random.default_rng(0)
+    # sites as the diagnosis's patches give them: points near the surface, with normals
+    d = rng.normal(size=(40, 3))
+    d[:, 2] = np.abs(d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    pts, nrm = dome.project(np.array([0.035, 0.035, -0.012]) + 0.05 * d)
+    lim = PlanLimits(max_depth=0.004, speed=0.008)
+    moves = surface_moves(dome, RADIUS, (pts - 5e-4 * nrm, nrm), lim)
+    presses = [m for m in moves if m.name.startswith("press-")]
+    assert len(presses) == 6 and any(m.name.startswith("slide-") for m in moves)
+    tops = np.array([m.knots_p[2] for m in presses])
+    # spread over the dome: no two presses closer than 1 cm
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(tops) for b in tops[i + 1:]) > 0.01
+    for m in moves:
+        t = np.arange(0.0, m.duration, 0.002)
+        c = ProbeTrajectory(m.knots_t, m.knots_p)(t)
+        depth = dome.penetration_depth(c, RADIUS)
+        assert depth.max() <= lim.max_depth + 1e-6, m.name
+        if m.name.startswith("press-"):
+            assert depth.max() == pytest.approx(lim.max_depth, abs=3e-4), m.name  # to the limit, along the normal
+        v = np.linalg.norm(np.diff(c, axis=0), axis=1) / 0.002
+        contact = (depth[1:] > 0) & (depth[:-1] > 0)
+        assert v[contact].max() <= 1.01 * lim.speed, m.name
+    # a surface seen only from below cannot be pressed from above
+    with pytest.raises(PlanError, match="from above"):
+        surface_moves(dome, RADIUS, (np.array([[0.035, 0.035, 0.0]]), np.array([[0.0, 0.0, -1.0]])), lim)
+
+
 @pytest.mark.slow
 def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
     """``tissuetwin plan --kinds friction`` on a session without force: the plan slides
