@@ -144,6 +144,8 @@ class Diagnosis:
     """How the sequences palpated (``core.diagnosis.summary.palpation``)."""
     nuisances: tuple = ()
     """The nuisance directions the base model carried (``core.diagnosis.nuisance``)."""
+    notes: tuple = ()
+    """What the diagnosis had to change from its configuration, and why (diagnosis.json ``notes``)."""
 
     def answers(self) -> dict:
         """{kind: one of :data:`ANSWERS`} for every kind with a detectability statement."""
@@ -197,5 +199,6 @@ class Diagnosis:
                        "null_replicates": cfg.n_null, "block_s": cfg.block},
             "simulations": self.simulations,
             "timings_s": self.timings,
+            "notes": list(self.notes),
             **({"learned_correction": self.learned_correction} if self.learned_correction else {}),
         }

@@ -76,3 +76,28 @@ def test_min_size_of_gravity_agrees_with_simulation(no_effect, tmp_path_factory)
             assert d.causes[0].parameters["g"][2] == pytest.approx(g[2], rel=0.35)
         else:
             assert kinds == [], (factor, kinds)
+
+
+def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypatch):
+    """Where the fine-mesh reference diverges (a deep press inverting its small elements;
+    measured on a dome pressed 9.6 mm at its 25 mm apex) and the replay's own mesh does not,
+    the diagnosis carries on without it and says so in ``notes``, instead of failing. The
+    fine runs are made to diverge here by reporting them so (the lab's sessions do not)."""
+    from dataclasses import replace
+
+    import core.diagnosis.evidence as evidence
+
+    session, _, _ = no_effect
+    real = evidence.run_field
+    fine_grid = DiagnosisConfig().fine_grid
+
+    def run_field(prepared, item):
+        run = real(prepared, item)
+        return replace(run, ok=False) if tuple(item.trial.grid) == tuple(fine_grid) else run
+
+    monkeypatch.setattr(evidence, "run_field", run_field)
+    d = diagnose(session, DiagnosisConfig(max_causes=1, detectability=False, fit_youngs=False, n_boot=50))
+    data = d.to_json()
+    assert d.config.fine_grid is None and "mesh" not in d.nuisances
+    assert len(data["notes"]) == 1 and "fine-mesh reference diverged" in data["notes"][0]
+    assert d.causes == []  # the same no-effect session: still nothing claimed
