@@ -174,3 +174,28 @@ def test_input_side_effects_change_only_the_probe():
 def test_effects_round_trip_through_their_dicts():
     for e in [Gravity(), Inclusion(), Viscoelasticity(), Friction(), BaseCompliance(), ProbeRadius(), TimeOffset(), KinematicOffset()]:
         assert effect_from_dict(e.to_dict()) == e
+
+
+def test_a_fitted_gravity_stays_within_its_tilt_of_straight_down():
+    """The gravity fit space keeps g within MAX_TILT_DEG of -z (a phantom rests on its
+    support): vectors inside the cone are kept, others go to the cone's nearest point
+    (checked against a brute-force search over the cone's surface)."""
+    from core.simulation.effects import EFFECT_KINDS, PhantomContext
+    from core.simulation.effects.body import MAX_TILT_DEG
+
+    space = EFFECT_KINDS["gravity"].fit_space(PhantomContext(np.array([0.07, 0.04, 0.036])))
+    rng = np.random.default_rng(0)
+    t = np.tan(np.radians(MAX_TILT_DEG))
+    # the cone's surface (and its apex), sampled finely
+    az, h = np.meshgrid(np.linspace(0, 2 * np.pi, 721), np.linspace(0, 60, 1201))
+    cone = np.stack([t * h * np.cos(az), t * h * np.sin(az), -h], axis=-1).reshape(-1, 3)
+    for g in rng.uniform(-30, 30, (40, 3)):
+        p = space.clip(g)
+        tilt = np.degrees(np.arctan2(np.hypot(p[0], p[1]), -p[2])) if np.any(p) else 0.0
+        assert tilt <= MAX_TILT_DEG + 1e-6
+        if np.hypot(g[0], g[1]) <= t * -g[2]:
+            np.testing.assert_allclose(p, g)
+        else:
+            best = cone[np.argmin(np.linalg.norm(cone - g, axis=1))]
+            assert np.linalg.norm(p - g) <= np.linalg.norm(best - g) + 1e-9
+            assert np.linalg.norm(p - best) < 0.1

@@ -47,17 +47,44 @@ class Gravity(Effect):
     def fit_space(cls, ctx):
         # the whole vector: a phantom on a platform that is not level sags sideways too
         # (a 5 degree tilt shears the top by ~0.3 mm), which only its vertical part
-        # left to be absorbed by a robot offset
+        # left to be absorbed by a robot offset. But a phantom rests on its support: the
+        # vector stays within MAX_TILT_DEG of straight down (a dome's diagnosis otherwise
+        # fitted g = (-30, -28, -10) m/s^2, a phantom lying on its side, to a gap of
+        # another shape and claimed it)
         return FitSpace(
             "gravity", ("g_x", "g_y", "g_z"), ("m/s^2",) * 3, _a(1.0, 1.0, 2.0), _a(-30.0, -30.0, -30.0),
             _a(30.0, 30.0, 30.0), (_a(0.0, 0.0, -4.0),),
             lambda x: {"kind": "gravity", "g": [float(v) for v in x]},
             lambda x: {"g": [float(v) for v in x]},
+            project=_within_tilt,
         )
 
     @classmethod
     def example(cls, ctx, rng):
         return cls(g=(0.0, 0.0, -9.81))
+
+
+MAX_TILT_DEG = 30.0
+"""Largest angle (degrees) between a fitted gravity and straight down (-z, phantom frame):
+a phantom rests on its support, tilted a few degrees at most on a platform that is not level."""
+
+
+def _within_tilt(x: np.ndarray) -> np.ndarray:
+    """(3,) gravity vector ``x`` (m/s^2) projected onto the cone of half-angle
+    :data:`MAX_TILT_DEG` around -z (the nearest point of the cone; the origin for a vector
+    pointing up beyond it)."""
+    g = np.asarray(x, dtype=np.float64).copy()
+    lateral, down = float(np.hypot(g[0], g[1])), -float(g[2])
+    t = math.tan(math.radians(MAX_TILT_DEG))
+    if lateral <= t * down:
+        return g
+    # nearest point of the cone {lateral <= t down}: along its generator in the vector's azimuth
+    c, s_ = math.cos(math.radians(MAX_TILT_DEG)), math.sin(math.radians(MAX_TILT_DEG))
+    along = lateral * s_ + down * c  # the projection onto the generator (unit (s_, c) in (lateral, down))
+    if along <= 0.0:
+        return np.zeros(3)
+    scale = along * s_ / lateral
+    return np.array([g[0] * scale, g[1] * scale, -along * c])
 
 
 @dataclass(frozen=True)
