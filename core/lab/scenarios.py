@@ -30,9 +30,22 @@ SCENARIO_KINDS = (*EFFECT_KINDS, "none")
 """Every effect kind of SESSION_FORMAT.md, and "none" (no effect)."""
 
 
-def hidden_effects(kind: str, seed: int) -> list[dict]:
+def _context(shape: str) -> PhantomContext:
+    """The phantom context of the lab's ``shape`` (``"box"`` or one of
+    :data:`core.lab.shapes.SHAPES`), probe radius 5 mm."""
+    if shape == "box":
+        return PhantomContext(np.asarray(PHANTOM_SIZE), 0.005)
+    from core.lab.shapes import shape_surface
+    from core.preparation.shape import SurfaceShape
+
+    surface = SurfaceShape(*shape_surface(shape))
+    return PhantomContext(surface.size, 0.005, shape=surface)
+
+
+def hidden_effects(kind: str, seed: int, shape: str = "box") -> list[dict]:
     """The effect dicts hidden for ``kind`` (SI, phantom frame; empty for "none"): the
-    kind's own example (:meth:`core.simulation.effects.Effect.example`), drawn with
+    kind's own example (:meth:`core.simulation.effects.Effect.example`) on the lab's
+    ``shape`` (an inclusion lies under its surface), drawn with
     ``numpy.random.default_rng(1000 + seed)``.
 
     Magnitudes: standard gravity; a 9 mm inclusion 6x stiffer than the bulk, 2 mm under
@@ -49,11 +62,11 @@ def hidden_effects(kind: str, seed: int) -> list[dict]:
         return []
     if kind not in EFFECT_KINDS:
         raise ValueError(f"unknown scenario kind {kind!r}; expected one of {SCENARIO_KINDS}")
-    ctx = PhantomContext(np.asarray(PHANTOM_SIZE), 0.005)
-    return [EFFECT_KINDS[kind].example(ctx, np.random.default_rng(1000 + seed)).to_dict()]
+    return [EFFECT_KINDS[kind].example(_context(shape), np.random.default_rng(1000 + seed)).to_dict()]
 
 
-def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConfig = "small") -> tuple[LabConfig, list[dict]]:
+def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConfig = "small",
+             shape: str = "box") -> tuple[LabConfig, list[dict]]:
     """The lab configuration and hidden effects of ``kind``'s scenario.
 
     Args:
@@ -62,6 +75,8 @@ def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConf
         duration: length of each of the preset's sequences, s.
         preset: the base configuration (default the ``small`` preset: 4 sequences, validation,
             test and two train).
+        shape: the lab's phantom (``"box"``, ``"dome"``, ``"kidney"``; pass the same to
+            :func:`core.lab.generate_session`).
 
     Returns:
         (LabConfig, effects) for :func:`core.lab.generate_session`.
@@ -69,7 +84,7 @@ def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConf
     Raises:
         ValueError: unknown kind.
     """
-    effects = hidden_effects(kind, seed)
+    effects = hidden_effects(kind, seed, shape)
     base = PRESETS[preset] if isinstance(preset, str) else preset
     lab = base.with_duration(duration)
     probing = lab.probing
@@ -79,6 +94,8 @@ def scenario(kind: str, seed: int, duration: float = 10.0, preset: str | LabConf
         # presses at one distance only cannot tell a stiff inclusion from a stiffer bulk
         half = 0.009
         probing = replace(probing, top_region=(c[0] - half, c[1] - half, c[0] + half, c[1] + half), side_probability=0.0)
+        if shape != "box":  # every press lands over the inclusion, at a thin part of a dome
+            probing = replace(probing, max_strain=0.25)
     elif kind == "friction":
         # every poke slides, briskly, so that even a 6 s sequence holds a slide
         probing = replace(probing, slide_probability=1.0, side_probability=0.0, hold_range=(0.3, 0.8),

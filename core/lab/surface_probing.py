@@ -16,12 +16,15 @@ Everything is in the phantom frame (z up, resting on z = 0), SI units.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from core.lab.probing import PathBuilder, Poke, ProbePlan, ProbeTrajectory, ProbingConfig, Stroke, tool_rotation
 from core.preparation.shape import SurfaceShape
 
 __all__ = ["ReachableSurface", "plan_surface_sequence", "surface_penetration_depth"]
+
 
 
 class ReachableSurface(SurfaceShape):
@@ -34,6 +37,16 @@ class ReachableSurface(SurfaceShape):
     Raises:
         ValueError: not a watertight, consistently oriented surface.
     """
+
+    def thickness(self, point: np.ndarray, normal: np.ndarray) -> float:
+        """The body's thickness (m) under the surface ``point`` (3,) along its inward
+        normal (``-normal``): the distance to where that ray leaves the body (trimesh's
+        ray test); the point's height above the support when the ray finds no exit."""
+        p, n = np.asarray(point, dtype=np.float64), np.asarray(normal, dtype=np.float64)
+        hits, _, _ = self.mesh.ray.intersects_location(p[None] - 1e-6 * n[None], -n[None])
+        d = np.linalg.norm(hits - p, axis=1) if len(hits) else np.zeros(0)
+        d = d[d > 1e-5]
+        return float(d.min()) if d.size else float(max(p[2], 0.0))
 
     def sample(self, rng: np.random.Generator, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One point drawn area-uniformly on the ``allowed`` (F,) bool triangles, and its
@@ -74,6 +87,8 @@ def plan_surface_sequence(
         config: depths, speeds, holds, slides, clearances, tilt range and margins of the
             box planner (``edge_margin`` is unused: a curved surface has no face edges;
             ``bottom_margin`` keeps contacts this far above the support plus a radius;
+            ``top_region`` (x0, y0, x1, y1) keeps contact points over that rectangle;
+            ``max_strain`` caps a press's depth by the thickness under it;
             ``side_probability`` and ``face_cycle`` are unused).
         tool_azimuth: direction (rad) the shaft leans towards; random if None.
         min_shaft_cosine: smallest ``n . shaft`` of a pressed surface point.
@@ -95,8 +110,12 @@ def plan_surface_sequence(
     centroids = surface.mesh.triangles_center
     allowed = ((surface.normals @ shaft >= min_shaft_cosine) & (surface.normals[:, 2] >= 0.05)
                & (centroids[:, 2] >= cfg.bottom_margin + radius))
+    if cfg.top_region is not None:  # contacts over an (x, y) rectangle, as the box's top pokes
+        x0, y0, x1, y1 = cfg.top_region
+        allowed &= (centroids[:, 0] >= x0) & (centroids[:, 0] <= x1) & (centroids[:, 1] >= y0) & (centroids[:, 1] <= y1)
     if not np.any(allowed):
-        raise ValueError("no part of the phantom's surface can be pressed with this tool tilt")
+        raise ValueError("no part of the phantom's surface can be pressed with this tool tilt"
+                         + (f" in top_region {cfg.top_region}" if cfg.top_region is not None else ""))
     bounds = surface.mesh.bounds
     z_safe = surface.top + radius + cfg.safe_height
     centre_xy = 0.5 * (bounds[0, :2] + bounds[1, :2])
@@ -120,6 +139,12 @@ def plan_surface_sequence(
                 slide_to = target[0]
                 slide_speed = float(rng.uniform(*cfg.slide_speed_range))
         stroke = Stroke.draw(rng, cfg, point, n, radius, slide_to, z_safe)
+        if cfg.max_strain is not None:  # the drawn depth, capped by the body's thickness under the contact
+            cap = cfg.max_strain * surface.thickness(point, n)
+            if slide_to is not None:
+                cap = min(cap, cfg.max_strain * surface.thickness(slide_to, surface.project(slide_to[None])[1][0]))
+            if stroke.depth > cap:
+                stroke = replace(stroke, depth=float(cap))
         retract = stroke.retract
         travel = np.concatenate([np.linspace(stroke.above, stroke.approach, 12),
                                  np.linspace(retract, [retract[0], retract[1], z_safe], 12)])
