@@ -78,7 +78,7 @@ def test_min_size_of_gravity_agrees_with_simulation(no_effect, tmp_path_factory)
             assert kinds == [], (factor, kinds)
 
 
-def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypatch):
+def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypatch, tmp_path):
     """Where the fine-mesh reference diverges (a deep press inverting its small elements;
     measured on a dome pressed 9.6 mm at its 25 mm apex) and the replay's own mesh does not,
     the diagnosis carries on without it and says so in ``notes``, instead of failing. The
@@ -100,4 +100,8 @@ def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypa
     data = d.to_json()
     assert d.config.fine_grid is None and "mesh" not in d.nuisances
     assert len(data["notes"]) == 1 and "fine-mesh reference diverged" in data["notes"][0]
+    from core.diagnosis.report import write_diagnosis
+
+    write_diagnosis(d, tmp_path)
+    assert "fine-mesh reference diverged" in (tmp_path / "report.md").read_text()
     assert d.causes == []  # the same no-effect session: still nothing claimed
