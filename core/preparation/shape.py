@@ -54,6 +54,11 @@ class RestShape:
         the phantom stays where the last move put it)."""
         raise NotImplementedError
 
+    def summit(self) -> tuple[np.ndarray, np.ndarray]:
+        """The rest surface's highest point (3,) and its outward unit normal (3,), m,
+        phantom frame: where a probe presses when nothing else says where."""
+        raise NotImplementedError
+
 
 class BoxShape(RestShape):
     """The box ``[0, size]`` (phantom frame), answered in closed form.
@@ -95,6 +100,10 @@ class BoxShape(RestShape):
 
     def keep_inside(self, centre, radius):
         return np.clip(np.asarray(centre, dtype=np.float64), float(radius), self.size - float(radius))
+
+    def summit(self):
+        """The middle of the top face, normal +z."""
+        return np.array([self.size[0] / 2, self.size[1] / 2, self.size[2]]), np.array([0.0, 0.0, 1.0])
 
 
 class SurfaceShape(RestShape):
@@ -155,6 +164,18 @@ class SurfaceShape(RestShape):
             else:
                 lo = mid
         return c + hi * (anchor - c)
+
+    def summit(self):
+        """The surface point nearest to 10 mm above the highest vertex (a dome's apex) and
+        its normal (copies: the point is computed once)."""
+        p, n = self._summit
+        return p.copy(), n.copy()
+
+    @cached_property
+    def _summit(self) -> tuple[np.ndarray, np.ndarray]:
+        v = np.asarray(self.mesh.vertices)
+        p, n = self.project((v[int(np.argmax(v[:, 2]))] + np.array([0.0, 0.0, 0.01]))[None])
+        return p[0], n[0]
 
     @cached_property
     def deepest(self) -> np.ndarray:

@@ -74,15 +74,9 @@ class PhantomContext:
 
     def default_press(self) -> tuple[np.ndarray, np.ndarray]:
         """The rest-surface point (3,) and outward normal (3,) used when nothing was
-        pressed: the middle of the box's top, or the highest point of another shape."""
-        if self.shape.is_box:
-            return np.array([self.size[0] / 2, self.size[1] / 2, self.size[2]]), np.array([0.0, 0.0, 1.0])
-        top = np.array([self.size[0] / 2, self.size[1] / 2, self.size[2] + 1.0])
-        if hasattr(self.shape, "mesh"):
-            v = np.asarray(self.shape.mesh.vertices)
-            top = v[int(np.argmax(v[:, 2]))] + np.array([0.0, 0.0, 0.01])
-        p, n = self.shape.project(top[None])
-        return p[0], n[0]
+        pressed: the middle of the box's top, or the highest point of another shape
+        (:meth:`core.preparation.shape.RestShape.summit`)."""
+        return self.shape.summit()
 
 
 @dataclass(frozen=True)
