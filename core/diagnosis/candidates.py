@@ -13,7 +13,7 @@ import numpy as np
 from core.preparation.shape import RestShape
 from core.simulation.effects import EFFECT_KINDS, FitSpace, PhantomContext
 
-__all__ = ["Candidate", "candidates", "top_presses", "surface_presses", "phantom_context", "KINDS"]
+__all__ = ["Candidate", "candidates", "top_presses", "surface_presses", "phantom_context", "press_spans", "KINDS"]
 
 KINDS = tuple(EFFECT_KINDS)
 """Every effect kind of SESSION_FORMAT.md, in the order of the effect table."""
@@ -50,14 +50,8 @@ def top_presses(centres: np.ndarray, size, probe_radius: float, *, min_depth: fl
     depth = sz - (c[:, 2] - probe_radius)
     over = (c[:, 0] > 0) & (c[:, 0] < sx) & (c[:, 1] > 0) & (c[:, 1] < sy)
     pressed = over & (depth > min_depth)
-    out: list[np.ndarray] = []
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
-    for a, b in zip(edges[::2], edges[1::2]):
-        k = a + int(np.argmax(depth[a:b]))
-        p = c[k, :2]
-        if all(np.linalg.norm(p - q) >= merge for q in out):
-            out.append(p)
-    return np.array(out).reshape(-1, 2)
+    pts = c[[a + int(np.argmax(depth[a:b])) for a, b in press_spans(pressed)], :2].reshape(-1, 2)
+    return pts[_spread(pts, merge)]
 
 
 def surface_presses(centres: np.ndarray, shape: RestShape, probe_radius: float, *, min_depth: float = 0.001,
@@ -85,17 +79,29 @@ def surface_presses(centres: np.ndarray, shape: RestShape, probe_radius: float, 
         xy = top_presses(c, shape.size, probe_radius, min_depth=min_depth, merge=merge)
         return np.column_stack([xy, np.full(len(xy), shape.size[2])]), np.tile([0.0, 0.0, 1.0], (len(xy), 1))
     depth = shape.penetration_depth(c, probe_radius) if c.size else np.zeros(0)
-    pressed = depth > min_depth
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
-    deepest = [a + int(np.argmax(depth[a:b])) for a, b in zip(edges[::2], edges[1::2])]
+    deepest = [a + int(np.argmax(depth[a:b])) for a, b in press_spans(depth > min_depth)]
     if not deepest:
         return np.zeros((0, 3)), np.zeros((0, 3))
     pts, nrm = shape.project(c[deepest])
-    keep: list[int] = []
-    for i, p in enumerate(pts):
-        if all(np.linalg.norm(p - pts[j]) >= merge for j in keep):
-            keep.append(i)
+    keep = _spread(pts, merge)
     return pts[keep], nrm[keep]
+
+
+def press_spans(pressed: np.ndarray) -> list[tuple[int, int]]:
+    """The presses of a contact mask: ``[(start, stop), ...]`` frame index ranges (stop
+    exclusive) of each run of True in ``pressed`` (T,) bool, in time order."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(pressed).astype(np.int8), [0]])))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _spread(points: np.ndarray, merge: float) -> np.ndarray:
+    """Indices of ``points`` (K, D) kept by a greedy pass in order: a point closer than
+    ``merge`` (m) to one already kept is dropped."""
+    keep: list[int] = []
+    for i, p in enumerate(points):
+        if all(np.linalg.norm(p - points[j]) >= merge for j in keep):
+            keep.append(i)
+    return np.array(keep, dtype=np.int64)
 
 
 def phantom_context(prepared, names, *, merge: float = 0.005) -> PhantomContext:
@@ -111,13 +117,9 @@ def phantom_context(prepared, names, *, merge: float = 0.005) -> PhantomContext:
         KeyError: an unknown sequence. ValueError: the session's STL is not watertight.
     """
     shape = prepared.shape
-    pts, nrm = [], []
-    for n in names:
-        seq = prepared.sequences[n]
-        p, q = surface_presses(seq.probe.at(seq.frame_times), shape, prepared.probe_radius)
-        for a, b in zip(p, q):
-            if all(np.linalg.norm(a - o) >= merge for o in pts):
-                pts.append(a)
-                nrm.append(b)
-    return PhantomContext(prepared.size, prepared.probe_radius, np.array(pts).reshape(-1, 3),
-                          np.array(nrm).reshape(-1, 3), shape)
+    found = [surface_presses(prepared.sequences[n].probe.at(prepared.sequences[n].frame_times), shape,
+                             prepared.probe_radius) for n in names]
+    pts = np.concatenate([p for p, _ in found] + [np.zeros((0, 3))])
+    nrm = np.concatenate([q for _, q in found] + [np.zeros((0, 3))])
+    keep = _spread(pts, merge)
+    return PhantomContext(prepared.size, prepared.probe_radius, pts[keep], nrm[keep], shape)

@@ -406,7 +406,8 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
     return field, ss, dof.astype(np.int64)
 
 
-def phase_labels(times: np.ndarray, centres: np.ndarray, size, radius: float, *, speed: float = 0.002) -> np.ndarray:
+def phase_labels(times: np.ndarray, centres: np.ndarray, size, radius: float, *, speed: float = 0.002,
+                 depth: np.ndarray | None = None) -> np.ndarray:
     """(F,) phase index into :data:`PHASES` of each frame, from the probe path.
 
     Args:
@@ -415,13 +416,17 @@ def phase_labels(times: np.ndarray, centres: np.ndarray, size, radius: float, *,
             size of the box ``[0, size]``, m. radius: probe radius, m.
         speed: indentation rate (m/s) above which a contact counts as loading or
             unloading, and lateral speed above which it counts as sliding.
+        depth: (F,) the sphere's depth into the rest phantom at ``centres``, m, when the
+            caller has it (a surface's proximity query is not free); None: computed here.
 
     Indentation is the sphere's depth into the rest phantom (0 when clear): rest when it
     is 0, loading / unloading when it grows / shrinks faster than ``speed``, sliding when
     the probe moves sideways faster than ``speed`` while pressing, holding otherwise.
     """
-    shape = size if isinstance(size, RestShape) else BoxShape(size)
-    depth = np.maximum(shape.penetration_depth(centres, radius), 0.0) if len(centres) else np.zeros(0)
+    if depth is None:
+        shape = size if isinstance(size, RestShape) else BoxShape(size)
+        depth = shape.penetration_depth(centres, radius) if len(centres) else np.zeros(0)
+    depth = np.maximum(np.asarray(depth, dtype=np.float64), 0.0)
     t = np.asarray(times, dtype=np.float64)
     if t.size < 2:
         return np.zeros(t.size, dtype=int)

@@ -8,6 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
+from core.diagnosis.candidates import press_spans
 from core.diagnosis.evidence import Evidence, FieldRun
 from core.diagnosis.fields import NOISE_GROUPS, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
@@ -199,17 +200,16 @@ def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:
         c = s.probe.at(t)
         seconds += float(t[-1] - t[0]) if t.size > 1 else 0.0
         depth = shape.penetration_depth(c, r)
-        pressed = depth > 0.0005
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], pressed.astype(np.int8), [0]])))
+        spans = press_spans(depth > 0.0005)
         if shape.is_box:
             beside = (c[:, 2] < size[2]) & ((c[:, 0] < 0) | (c[:, 0] > size[0]) | (c[:, 1] < 0) | (c[:, 1] > size[1]))
         else:  # a press into another shape is a side press where the surface faces more sideways than up
             beside = np.zeros(len(c), dtype=bool)
-            deepest = [a + int(np.argmax(depth[a:b])) for a, b in zip(edges[::2], edges[1::2])]
+            deepest = [a + int(np.argmax(depth[a:b])) for a, b in spans]
             if deepest:
                 beside[deepest] = shape.project(c[deepest])[1][:, 2] < 0.5
-        ph = phase_labels(t, c, shape, r)
-        for a, b in zip(edges[::2], edges[1::2]):
+        ph = phase_labels(t, c, shape, r, depth=depth)
+        for a, b in spans:
             if np.any(beside[a:b]):
                 side += 1
             else:
