@@ -192,7 +192,7 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
         jac = (sens.positions, sens.contact_force, d_E, d_off)
     pts, bins, counts = _binned(prepared, t.sequence, item.layout)
     # the mesh the fields are measured on: the box's grid, or any phantom's replayed mesh
-    shape = replay_mesh(prepared, t.grid, t.element_size) if getattr(item.layout, "is_patches", False) else t.grid
+    shape = item.layout.measured_on(prepared, t.grid, t.element_size)
     fld, ss, dof = residual_field(sim.positions, shape, item.layout, pts, bins, counts)
     n = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
     sums = None

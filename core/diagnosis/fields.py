@@ -146,6 +146,33 @@ class FieldLayout:
             out[face_of == fi, axis] = 1.0 if high else -1.0
         return out
 
+    def measured_on(self, prepared, grid, element_size):
+        """What the residuals are measured on: the box grid ``grid`` (nx, ny, nz) itself
+        (``prepared`` and ``element_size`` are not needed; see :class:`PatchLayout`'s)."""
+        return tuple(grid)
+
+    def residuals(self, points: np.ndarray, bins: np.ndarray, frames: np.ndarray, positions: np.ndarray,
+                  grid) -> np.ndarray:
+        """(M,) signed residual of each binned point (M, 3) against its face of the box
+        grid ``grid`` (:func:`face_residuals`), m; ``bins`` (M,) its bin, ``frames`` (M,)
+        its frame in ``positions`` (F, N, 3)."""
+        fb = self.face_of_bin()[bins]
+        r = np.empty(points.shape[0])
+        for k in np.unique(fb):
+            m = fb == k
+            r[m] = face_residuals(points[m], positions, grid, self.size, FACES[k], frames=frames[m])
+        return r
+
+    def residuals_tangent(self, points: np.ndarray, bins: np.ndarray, frames: np.ndarray, positions: np.ndarray,
+                          dpositions: np.ndarray, grid) -> np.ndarray:
+        """(p, M) derivatives of :meth:`residuals` along ``dpositions`` (p, F, N, 3)."""
+        fb = self.face_of_bin()[bins]
+        dr = np.empty((dpositions.shape[0], points.shape[0]))
+        for k in np.unique(fb):
+            m = fb == k
+            dr[:, m] = face_residuals_tangent(points[m], positions, dpositions, grid, self.size, FACES[k], frames[m])
+        return dr
+
     def index(self, points: np.ndarray) -> np.ndarray:
         """(M,) bin index of each (M, 3) point, -1 where no face takes it.
 
@@ -311,8 +338,6 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
     F, B = counts.shape
     n_dir = dpositions.shape[0]
     out = np.zeros((n_dir, F, B))
-    patches = getattr(layout, "is_patches", False)
-    face_of = layout.face_of_bin()
     pos = np.asarray(positions, dtype=np.float64)
     ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
     if not np.any(ok) or n_dir == 0:
@@ -321,16 +346,7 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
     fr = np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in use])
     pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
     bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
-    fb = face_of[bn]
-    if patches:  # any phantom: ``grid`` is the replayed TetMesh
-        from core.diagnosis.patches import sampler_of
-
-        dr = sampler_of(grid).residuals_tangent(pts, fr, pos, dpositions)
-    else:
-        dr = np.empty((n_dir, pts.shape[0]))
-        for k in np.unique(fb):
-            m = fb == k
-            dr[:, m] = face_residuals_tangent(pts[m], pos, dpositions, grid, layout.size, FACES[k], fr[m])
+    dr = layout.residuals_tangent(pts, bn, fr, pos, dpositions, grid)
     flat = fr * B + bn
     n = np.where(ok[:, None], counts, 0).astype(np.float64)
     for t in range(n_dir):
@@ -388,15 +404,7 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
     pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
     bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
     fb = face_of[bn]
-    if getattr(layout, "is_patches", False):  # any phantom: ``grid`` is the replayed TetMesh
-        from core.diagnosis.patches import sampler_of
-
-        r = sampler_of(grid).residuals(pts, fr, pos)
-    else:
-        r = np.empty(pts.shape[0])
-        for k in np.unique(fb):
-            m = fb == k
-            r[m] = face_residuals(pts[m], pos, grid, layout.size, FACES[k], frames=fr[m])
+    r = layout.residuals(pts, bn, fr, pos, grid)
     flat = fr * B + bn
     sums = np.bincount(flat, weights=r, minlength=F * B).reshape(F, B)
     n = np.where(ok[:, None], counts, 0)

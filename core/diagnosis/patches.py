@@ -134,8 +134,6 @@ class PatchLayout:
             one column). top_bins, n_bins: ``n_patches``.
     """
 
-    is_patches = True
-
     def __init__(self, mesh: TetMesh, n_patches: int = 32, *, base_margin: float = 0.003,
                  max_distance: float = 0.012, seed: int = 0):
         from scipy.cluster.vq import kmeans2
@@ -205,6 +203,25 @@ class PatchLayout:
         """(B, 3) mean outward unit normal of each patch, rest surface."""
         return self._normals.copy()
 
+    def measured_on(self, prepared, grid, element_size) -> TetMesh:
+        """What the residuals are measured on: the replayed mesh of ``prepared``'s phantom
+        (:func:`core.simulation.replay.replay_mesh` with ``grid`` and ``element_size``)."""
+        from core.simulation.replay import replay_mesh
+
+        return replay_mesh(prepared, grid, element_size)
+
+    def residuals(self, points: np.ndarray, bins: np.ndarray, frames: np.ndarray, positions: np.ndarray,
+                  mesh: TetMesh) -> np.ndarray:
+        """(M,) signed residual of each binned point (M, 3) along the deformed surface's
+        normal of the replayed ``mesh`` (:meth:`SurfaceSampler.residuals`), m; ``frames``
+        (M,) its frame in ``positions`` (F, N, 3). ``bins`` is not needed (one noise group)."""
+        return sampler_of(mesh).residuals(points, frames, positions)
+
+    def residuals_tangent(self, points: np.ndarray, bins: np.ndarray, frames: np.ndarray, positions: np.ndarray,
+                          dpositions: np.ndarray, mesh: TetMesh) -> np.ndarray:
+        """(p, M) derivatives of :meth:`residuals` along ``dpositions`` (p, F, N, 3)."""
+        return sampler_of(mesh).residuals_tangent(points, frames, positions, dpositions)
+
     def index(self, points: np.ndarray) -> np.ndarray:
         """(M,) patch of each (M, 3) point (its nearest rest sample's), -1 when that
         sample is unseen (the support) or farther than ``max_distance``."""
@@ -231,6 +248,6 @@ def field_layout(prepared, cfg):
     from core.diagnosis.fields import FieldLayout
     from core.simulation.replay import replay_mesh
 
-    if getattr(prepared, "stl_path", None) is not None:
+    if prepared.stl_path is not None:
         return PatchLayout(replay_mesh(prepared, cfg.grid, cfg.element_size), cfg.surface_patches)
     return FieldLayout(tuple(float(v) for v in prepared.size), cfg.layout_bins, side_rows=cfg.side_rows)
