@@ -214,7 +214,7 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
 def _floor_mesh(prepared: PreparedSession, cfg: DiagnosisConfig, ev: Evidence):
     """The mesh of the reported noise floor: None for a box (the grid's), the fine mesh
     of any phantom."""
-    if getattr(prepared, "stl_path", None) is None:
+    if prepared.stl_path is None:
         return None
     from core.simulation.replay import replay_mesh
 
@@ -280,8 +280,7 @@ def diagnose_prepared(
             # say so, rather than give no answer
             notes.append(f"the fine-mesh reference diverged on {', '.join(failed)}: the diagnosis ran without it "
                          "(no mesh nuisance, no fine-mesh discrepancy, noise from the replay's own mesh)")
-            ev.drop_fine_reference()
-            cfg = ev.cfg
+            cfg = ev.drop_fine_reference()
             break
     base = {role: ev.runs([[]], role)[0] for role in ("train", "validation")}
     all_base = base["train"] + base["validation"]

@@ -260,7 +260,7 @@ class Evidence:
             self.counts[n] = counts.astype(np.float64)
         self.force, self.force_sigma, self.force_note = _force_evidence(prepared, cfg.use_force)
         self.fine_element_size = None
-        if getattr(prepared, "stl_path", None) is not None:
+        if prepared.stl_path is not None:
             coarse = replay_mesh(prepared, cfg.grid, cfg.element_size)
             self.fine_element_size = (cfg.element_size or mean_edge_length(coarse)) / 2.0
         self.sigma2 = 1.0  # the top face's point noise variance, m^2 (set by weigh_faces)
@@ -289,7 +289,7 @@ class Evidence:
         if spec.simulation:
             sim = replace(sim, **dict(spec.simulation))
         element_size = c.element_size
-        if getattr(self.prepared, "stl_path", None) is not None and c.fine_grid is not None \
+        if self.prepared.stl_path is not None and c.fine_grid is not None \
                 and tuple(grid) == tuple(c.fine_grid):
             element_size = self.fine_element_size  # any phantom: the fine mesh halves the element size
         return Trial(sequence=seq, youngs_modulus=spec.youngs_modulus, poisson_ratio=spec.poisson_ratio or c.poisson_ratio,
@@ -392,16 +392,21 @@ class Evidence:
             self.force_delta[c.sequence] = f.force - ratio * c.force
         return []
 
-    def drop_fine_reference(self) -> None:
+    def drop_fine_reference(self) -> DiagnosisConfig:
         """Carry on without the fine-mesh reference (``fine_grid`` None): forget the stored
         discrepancies and the runs made so far (the coarse runs used ``coarse_dt``; without
         a fine reference every run takes the default step); later runs are on the replay's
-        own mesh only."""
+        own mesh only.
+
+        Returns:
+            The configuration now in force (the caller's copy still names the fine grid).
+        """
         self.cfg = replace(self.cfg, fine_grid=None)
         self.cache.clear()
         self.delta.clear()
         self.force_delta.clear()
         self.force_ratio.clear()
+        return self.cfg
 
     def field(self, r: FieldRun) -> np.ndarray:
         """(F, B) residual field of a coarse run, discrepancy-corrected."""

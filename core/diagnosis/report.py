@@ -147,7 +147,7 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
     else:
         lines += ["", f"Probe force: {diag.force_note}. Without it, effects that change the force more than the "
                       "surface (a stiff inclusion, friction, a wrong probe radius) are hard to see."]
-    for note in getattr(diag, "notes", ()):
+    for note in diag.notes:
         lines += ["", f"**Note**: {note}."]
     lines += ["", "## Why", ""]
     if diag.causes:

@@ -255,7 +255,7 @@ def fit_youngs_modulus(
     lo_i, hi_i = widen_interval(E_star, (lo_b, hi_b), shift)
 
     refined = refined_grid(base.grid)
-    stl = getattr(prepared, "stl_path", None) is not None
+    stl = prepared.stl_path is not None
     coarse_mesh = replay_mesh(prepared, base.grid, base.element_size)
     sizes = None
     if stl:  # an STL phantom: refine by halving the element size (Gmsh), as 2 n - 1 halves a grid's

@@ -144,7 +144,7 @@ def replay_mesh(prepared: PreparedSession, grid=(13, 5, 5), element_size: float 
 
     Raises:
         SimulationError: a bad grid. MeshingError: a bad STL."""
-    return phantom_mesh(prepared.size, getattr(prepared, "stl_path", None), grid=grid, element_size=element_size)
+    return phantom_mesh(prepared.size, prepared.stl_path, grid=grid, element_size=element_size)
 
 
 def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3, *,
