@@ -4,7 +4,7 @@ beside the planner's ``plan.json``, ``plan.md`` and ``kinematics.csv``.
 ``plan_view.json`` (phantom frame, SI): the phantom's rest ``size`` (3,) m and the
 probe ``radius`` m; the probe path ``t`` (K,) s and ``centres`` (K, 3) m (the sphere's
 centre, as ``plan.json``'s ``path_phantom``); ``contact`` (K,) whether the sphere touches
-or presses the rest phantom there (``core.lab.probing.penetration_depth`` > 0); the
+or presses the rest phantom there (``core.preparation.shape.RestShape.penetration_depth`` > 0); the
 ``moves`` with the index where each first touches (``start``), their names and
 descriptions; the plan's ``description`` lines, ``targets``, ``predicted`` and
 ``current`` sizes with their units, and ``record_force``. A phantom given by
@@ -25,18 +25,6 @@ __all__ = ["PLAN_VIEW", "plan_view", "write_plan_view", "load_plan_view"]
 PLAN_VIEW = "plan_view.json"
 
 
-def _stl_penetration(surface, centres: np.ndarray, radius: float) -> np.ndarray:
-    """(K,) how deep a sphere of ``radius`` at ``centres`` (K, 3) reaches into the closed
-    ``surface`` (a ``trimesh.Trimesh``), m: ``radius`` plus the centre's signed distance
-    (trimesh's sign: positive inside), as :func:`core.lab.probing.penetration_depth` is for
-    the box."""
-    import trimesh
-
-    if centres.shape[0] == 0:
-        return np.zeros(0)
-    return radius + np.asarray(trimesh.proximity.signed_distance(surface, centres), float)
-
-
 def plan_view(plan, size, radius: float, stl=None) -> dict:
     """The viewer's description of ``plan`` (module docstring).
 
@@ -52,18 +40,19 @@ def plan_view(plan, size, radius: float, stl=None) -> dict:
         MeshingError: ``stl`` is not a usable phantom surface
             (:func:`core.simulation.meshing.check_stl`).
     """
-    from core.lab.probing import penetration_depth
+    from core.preparation.shape import BoxShape, SurfaceShape
     from core.simulation.effects import EFFECT_KINDS
 
     centres = np.asarray(plan.path_phantom, float).reshape(-1, 3)
     surface = None
     if stl is None:
-        contact = penetration_depth(centres, size, radius) > 0.0
+        shape = BoxShape(size)
     else:
         from core.simulation.meshing import check_stl
 
         surface = check_stl(stl)
-        contact = _stl_penetration(surface, centres, float(radius)) > 0.0
+        shape = SurfaceShape(surface.vertices, surface.faces)
+    contact = (shape.penetration_depth(centres, float(radius)) > 0.0) if len(centres) else np.zeros(0, dtype=bool)
     # each move's first touch, in path order: moves are pressed one after the other
     touches = np.flatnonzero(contact & ~np.concatenate([[False], contact[:-1]]))
     moves = []
