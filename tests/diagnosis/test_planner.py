@@ -63,6 +63,13 @@ def test_moves_on_a_dome_press_along_its_normals_within_the_limits():
     tops = np.array([m.knots_p[2] for m in presses])
     # spread over the dome: no two presses closer than 1 cm
     assert min(np.linalg.norm(a - b) for i, a in enumerate(tops) for b in tops[i + 1:]) > 0.01
+    # each press goes in along the sphere's normal at its contact (approach -> pressed)
+    from tests._shapes import DOME_CENTRE
+
+    for m in presses:
+        u = m.knots_p[1] - m.knots_p[2]
+        n = m.knots_p[2] - DOME_CENTRE
+        assert np.dot(u, n) / (np.linalg.norm(u) * np.linalg.norm(n)) > np.cos(np.radians(8)), m.name
     for m in moves:
         t = np.arange(0.0, m.duration, 0.002)
         c = ProbeTrajectory(m.knots_t, m.knots_p)(t)

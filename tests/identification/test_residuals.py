@@ -9,6 +9,7 @@ from core.identification.residuals import signed_residuals, surface_residuals, t
 from core.lab.shapes import dome_surface
 from core.simulation import box_mesh
 from core.simulation.meshing import tetrahedralise
+from tests._shapes import DOME_BASE_RADIUS, DOME_CENTRE, DOME_SPHERE_RADIUS, cap_directions
 
 
 @pytest.fixture(autouse=True)
@@ -24,17 +25,14 @@ def test_points_off_a_dome_give_their_signed_distance(tmp_path):
     stl = tmp_path / "dome.stl"
     trimesh.Trimesh(V, F).export(str(stl))
     mesh = tetrahedralise(stl, 0.005)
-    R, a, h = (0.035**2 + 0.025**2) / 0.05, 0.035, 0.025
-    centre = np.array([a, a, h - R])
-    rng = np.random.default_rng(0)
-    d = rng.normal(size=(400, 3))
-    d[:, 2] = np.abs(d[:, 2]) + 2.0  # directions well up the cap
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    R, centre = DOME_SPHERE_RADIUS, DOME_CENTRE
+    d = cap_directions(400, 0, lift=2.0)  # directions well up the cap
     for offset in (+0.001, -0.001):
         res = surface_residuals(centre + (R + offset) * d, mesh.nodes, mesh)
         assert res.size >= 390  # a few near the rim face the side (n_z < 0.5)
         assert np.median(res) == pytest.approx(offset, abs=0.25e-3)
     assert surface_residuals(centre + (R + 0.02) * d, mesh.nodes, mesh).size == 0
+    a = DOME_BASE_RADIUS
     below = np.array([[a, a, -0.001], [a + 0.01, a, -0.002]])
     assert surface_residuals(below, mesh.nodes, mesh).size == 0
 

@@ -23,6 +23,7 @@ from core.learning import (
     voxel_map,
 )
 from core.simulation.mesh import box_mesh
+from tests._shapes import box_surface
 from tests.learning.conftest import SMALL_NET, WRONG_E
 from tests.learning.test_networks import _inputs
 from tests.learning.test_train import FAST
@@ -33,11 +34,7 @@ GRID = (13, 5, 5)
 
 def _box_stl(path, size=SIZE):
     """The box [0, size] as a watertight STL (trimesh.creation.box, moved onto z = 0)."""
-    import trimesh
-
-    box = trimesh.creation.box(extents=size)
-    box.apply_translation(np.asarray(size) / 2)
-    box.export(str(path))
+    box_surface(size).export(str(path))
     return path
 
 
@@ -200,6 +197,31 @@ def test_old_checkpoints_without_mesh_or_element_size_still_load(tmp_path):
         assert torch.equal(net(x, pose), ck.network(x, pose))
 
 
+def _trains_and_corrects_the_surface(prepared, config, frames, label):
+    """Train the small 2D network on ``frames`` and check what both mesh tests ask: at
+    least 10 % less test error in the loop and offline, every in-loop replay ok, and only
+    the corrected nodes (the surface above the support, z > 0) moved. Returns the report
+    and its first offline sequence."""
+    rep = train_and_test(prepared, config, NetworkConfig(kind="2d", **SMALL_NET), FAST, frames=frames)
+    te = rep.test_error
+    report = rep.to_json()
+    print(f"\n{label}, E = {WRONG_E:g} Pa, 2D: no network {te['no_network'] * 1e3:.3f} mm, in-loop "
+          f"{te['corrected'] * 1e3:.3f} mm ({report['improvement']:.1%}), offline {te['corrected_offline'] * 1e3:.3f} mm "
+          f"({report['improvement_offline']:.1%}); nodes {next(iter(frames.values())).mesh.n_nodes}, epochs "
+          f"{len(rep.training.history)}, best {rep.training.best_epoch}, {rep.training.timings['per_epoch']:.2f} s/epoch; "
+          f"unobserved within {report['max_unobserved_offset'] * 1e3:.2f} mm")
+    assert report["improvement"] >= 0.10 and report["improvement_offline"] >= 0.10
+    assert all(s.status == "ok" for s in rep.in_loop.values())
+    seq = next(iter(rep.offline.values()))
+    mesh = frames[seq.name].mesh
+    moved = corrected_nodes(mesh)
+    np.testing.assert_array_equal(seq.corrected_nodes, moved)
+    assert np.all(mesh.nodes[moved, 2] > 0.0)  # the support (z = 0) is held
+    others = np.setdiff1d(np.arange(mesh.n_nodes), moved)
+    np.testing.assert_array_equal(seq.positions[:, others], frames[seq.name].positions[:, others])
+    return rep, seq
+
+
 @pytest.fixture(scope="module")
 def stl_prepared(gravity_session, tmp_path_factory):
     """The gravity session of the other learning tests, copied with the box as phantom.stl."""
@@ -235,24 +257,11 @@ def test_2d_network_corrects_a_wrong_youngs_modulus_on_an_stl_phantom(stl_prepar
     frames = build_frames(stl_prepared, wrong_e_config)
     f = next(iter(frames.values()))
     assert f.unstructured and f.positions.shape[1] == f.mesh.n_nodes
-    rep = train_and_test(stl_prepared, wrong_e_config, NetworkConfig(kind="2d", **SMALL_NET), FAST, frames=frames)
+    rep, seq = _trains_and_corrects_the_surface(stl_prepared, wrong_e_config, frames, "STL box")
     te = rep.test_error
-    report = rep.to_json()
-    print(f"\nSTL box, E = {WRONG_E:g} Pa, 2D: no network {te['no_network'] * 1e3:.3f} mm, in-loop "
-          f"{te['corrected'] * 1e3:.3f} mm ({report['improvement']:.1%}), offline {te['corrected_offline'] * 1e3:.3f} mm "
-          f"({report['improvement_offline']:.1%}); epochs {len(rep.training.history)}, best {rep.training.best_epoch}, "
-          f"{rep.training.timings['per_epoch']:.2f} s/epoch; unobserved within {report['max_unobserved_offset'] * 1e3:.2f} mm")
     assert te["no_network"] > 3e-3
-    assert report["improvement"] >= 0.10 and report["improvement_offline"] >= 0.10
-    assert all(s.status == "ok" for s in rep.in_loop.values())
     assert te["corrected"] == pytest.approx(te["corrected_offline"], rel=0, abs=1e-9)
-    # only the corrected nodes (surface above z = 0) moved, within the half-voxel bound
-    seq = next(iter(rep.offline.values()))
-    mesh = frames[seq.name].mesh
-    moved = corrected_nodes(mesh)
-    np.testing.assert_array_equal(seq.corrected_nodes, moved)
-    others = np.setdiff1d(np.arange(mesh.n_nodes), moved)
-    np.testing.assert_array_equal(seq.positions[:, others], frames[seq.name].positions[:, others])
+    # within the half-voxel bound
     bound = 0.5 * stl_prepared.size / (np.array(wrong_e_config.grid) - 1)
     assert np.all(np.abs(seq.corrections) <= bound * (1 + 1e-6))
     # the signed residual is a box-top figure: unknown (NaN) on an unstructured mesh
@@ -285,18 +294,4 @@ def test_2d_network_corrects_a_wrong_youngs_modulus_on_a_dome(tmp_path, monkeypa
     assert prepared.stl_path is not None
     config = ReplayConfig(youngs_modulus=WRONG_E, effects=(Gravity(),))
     frames = build_frames(prepared, config)
-    rep = train_and_test(prepared, config, NetworkConfig(kind="2d", **SMALL_NET), FAST, frames=frames)
-    te = rep.test_error
-    report = rep.to_json()
-    print(f"\ndome, E = {WRONG_E:g} Pa, 2D: no network {te['no_network'] * 1e3:.3f} mm, in-loop "
-          f"{te['corrected'] * 1e3:.3f} mm ({report['improvement']:.1%}), offline {te['corrected_offline'] * 1e3:.3f} mm "
-          f"({report['improvement_offline']:.1%}); nodes {next(iter(frames.values())).mesh.n_nodes}, "
-          f"{rep.training.timings['per_epoch']:.2f} s/epoch")
-    assert report["improvement"] >= 0.10 and report["improvement_offline"] >= 0.10
-    assert all(s.status == "ok" for s in rep.in_loop.values())
-    seq = next(iter(rep.offline.values()))
-    mesh = frames[seq.name].mesh
-    moved = corrected_nodes(mesh)
-    assert np.all(mesh.nodes[moved, 2] > 0.0)  # the support (z = 0) is held
-    others = np.setdiff1d(np.arange(mesh.n_nodes), moved)
-    np.testing.assert_array_equal(seq.positions[:, others], frames[seq.name].positions[:, others])
+    _trains_and_corrects_the_surface(prepared, config, frames, "dome")

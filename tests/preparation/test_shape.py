@@ -9,18 +9,15 @@ from core.diagnosis.candidates import surface_presses
 from core.lab.shapes import dome_surface
 from core.preparation.shape import BoxShape, SurfaceShape, rest_shape
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
+from tests._shapes import DOME_BASE_RADIUS, DOME_CENTRE, DOME_HEIGHT, DOME_SPHERE_RADIUS, box_surface
 
 SIZE = np.array([0.08, 0.05, 0.05])
-A, H = 0.035, 0.025  # the dome's base radius and height
-R = (A**2 + H**2) / (2 * H)  # its sphere's radius; centre at (A, A, H - R)
-CENTRE = np.array([A, A, H - R])
+A, H = DOME_BASE_RADIUS, DOME_HEIGHT
+R, CENTRE = DOME_SPHERE_RADIUS, DOME_CENTRE  # the sphere its cap is cut from
 
 
 def _box_stl() -> SurfaceShape:
-    import trimesh
-
-    m = trimesh.creation.box(extents=SIZE)
-    m.apply_translation(SIZE / 2)
+    m = box_surface(SIZE)
     return SurfaceShape(m.vertices, m.faces)
 
 
@@ -127,8 +124,17 @@ def test_an_inclusion_on_a_dome_starts_and_stays_inside_it(dome):
         x = space.clip(rng.uniform(space.lower, space.upper))
         assert dome.clearance(x[None, :3])[0] <= -x[3] * 0.99
     # the kind's sized effect and its detectability assumption lie inside too
-    for a in EFFECT_KINDS["inclusion"].assumptions(ctx):
+    assumed = EFFECT_KINDS["inclusion"].assumptions(ctx)
+    assert len(assumed) == len(presses) == 2  # one under each press
+    for a in assumed:
         eff = EFFECT_KINDS["inclusion"].sized(4.0, ctx, **a)
         assert dome.clearance(np.asarray(eff.center)[None])[0] <= -eff.radius * 0.99
     ex = EFFECT_KINDS["inclusion"].example(ctx, np.random.default_rng(3))
     assert dome.clearance(np.asarray(ex.center)[None])[0] <= -ex.radius * 0.99
+    # with no press, the default press point is the dome's apex (the box's: the top's middle)
+    p, n = PhantomContext(dome.size, 0.005, shape=dome).default_press()
+    np.testing.assert_allclose(p, CENTRE + [0.0, 0.0, R], atol=2e-4)
+    assert n[2] > np.cos(np.radians(3))
+    p, n = PhantomContext(SIZE, 0.005).default_press()
+    np.testing.assert_allclose(p, [SIZE[0] / 2, SIZE[1] / 2, SIZE[2]])
+    np.testing.assert_allclose(n, [0.0, 0.0, 1.0])

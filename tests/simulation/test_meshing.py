@@ -12,6 +12,7 @@ from core.simulation.effects import Gravity
 from core.simulation.meshing import mesh_quality, rcm_order, tetrahedralise
 from core.simulation.metrics import supersampled_surface, surface_operator
 from core.simulation.solver import static_equilibrium
+from tests._shapes import box_surface
 
 SIZE = np.array([0.0687, 0.0393, 0.0358])
 
@@ -27,9 +28,7 @@ def _write(mesh: trimesh.Trimesh, path) -> str:
 
 
 def _box_stl(tmp_path, size=SIZE, name="box.stl"):
-    b = trimesh.creation.box(extents=size)
-    b.apply_translation(np.asarray(size) / 2)
-    return _write(b, tmp_path / name)
+    return _write(box_surface(size), tmp_path / name)
 
 
 def test_a_box_stl_fills_the_box_with_good_tetrahedra(tmp_path):
