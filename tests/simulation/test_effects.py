@@ -189,13 +189,20 @@ def test_a_fitted_gravity_stays_within_its_tilt_of_straight_down():
     # the cone's surface (and its apex), sampled finely
     az, h = np.meshgrid(np.linspace(0, 2 * np.pi, 721), np.linspace(0, 60, 1201))
     cone = np.stack([t * h * np.cos(az), t * h * np.sin(az), -h], axis=-1).reshape(-1, 3)
-    for g in rng.uniform(-30, 30, (40, 3)):
+    # random vectors (about 4 % of the box lies in the cone) and fixed ones on both sides:
+    # straight down, a few degrees off, upwards, sideways
+    fixed = np.array([[0.0, 0.0, -9.81], [0.5, -0.8, -9.81], [-2.0, 1.0, -9.0], [0.0, 0.0, 9.81], [20.0, 0.0, -5.0]])
+    kept = moved = 0
+    for g in np.concatenate([fixed, rng.uniform(-30, 30, (40, 3))]):
         p = space.clip(g)
         tilt = np.degrees(np.arctan2(np.hypot(p[0], p[1]), -p[2])) if np.any(p) else 0.0
         assert tilt <= MAX_TILT_DEG + 1e-6
         if np.hypot(g[0], g[1]) <= t * -g[2]:
+            kept += 1
             np.testing.assert_allclose(p, g)
         else:
+            moved += 1
             best = cone[np.argmin(np.linalg.norm(cone - g, axis=1))]
             assert np.linalg.norm(p - g) <= np.linalg.norm(best - g) + 1e-9
             assert np.linalg.norm(p - best) < 0.1
+    assert kept >= 3 and moved >= 2
