@@ -46,9 +46,15 @@ def test_no_effect_on_other_physics_gives_no_claim_through_the_command_line(no_e
     check_contract(data, session)
     assert data["causes"] == [] and data["extended"]["kinds"] == [] and data["confounded"] == []
     assert set(data["answers"].values()) <= {"not_found", "cannot_tell"}
+    alpha = DiagnosisConfig().alpha
+    last = {c["kind"]: c for c in sorted(data["candidates"], key=lambda c: c["round"])}
     for kind, answer in data["answers"].items():
         assert (data["detectability"][kind]["min_size"] is None) == (answer == "cannot_tell"), kind
         assert kind in printed
+        if answer == "not_found":  # its last fit neither leaned towards it nor split train and validation
+            c = last[kind]
+            assert not (c["delta_chi2"] > 0 and c["p_value"] <= alpha), c
+            assert not (c["reproduction"]["expected"] >= c["critical"] > c["delta_chi2"]), c
     assert data["youngs_modulus"]["identifiable"] is False  # displacement only, no force, no gravity
     report = (out / "report.md").read_text()
     assert "No effect found" in report and "false-claim rate" in report

@@ -186,3 +186,27 @@ def test_reproduction_matches_the_drop_decomposition():
     assert out["expected"] == pytest.approx(S)
     assert out["observed"] == pytest.approx(float((noise + sig) @ (noise + sig) - noise @ noise))
     assert abs(out["observed"] / S - 1.0) < 0.2  # T ~ S when the change is really there
+
+
+def test_a_kind_the_data_lean_towards_or_disagree_on_is_not_called_absent():
+    """detectability.unsettled: "not found above min_size" is withheld when the held-out
+    data show evidence of the kind at the round's level short of a claim, or when train
+    asked for a change worth a claim that validation did not confirm; otherwise it stands."""
+    from types import SimpleNamespace
+
+    from core.diagnosis.detectability import unsettled
+
+    def evidence(T, critical, p, S=0.0):
+        return SimpleNamespace(statistic=T, critical=critical, p_value=p, reproduction={"expected": S})
+
+    # a viscoelasticity fit on a field session: p 0.0037, short of its critical 2630
+    why = unsettled(evidence(2376.0, 2630.0, 0.0037, S=1500.0), 0.01)
+    assert why.startswith("cannot tell") and "p 0.0037" in why and "lean towards" in why
+    # train fitted a change worth 600 against a critical 500, validation gave it 50
+    why = unsettled(evidence(50.0, 500.0, 0.3, S=600.0), 0.01)
+    assert why.startswith("cannot tell") and "disagree" in why and "600" in why
+    # no evidence, or evidence above alpha, or a fit that made validation worse: not found stands
+    assert unsettled(evidence(50.0, 500.0, 0.3, S=100.0), 0.01) is None
+    assert unsettled(evidence(2376.0, 2630.0, 0.011, S=1500.0), 0.01) is None
+    assert unsettled(evidence(-40.0, 100.0, 0.001, S=20.0), 0.01) is None
+    assert unsettled(evidence(50.0, float("inf"), 0.3, S=600.0), 0.01) is None
