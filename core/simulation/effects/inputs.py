@@ -64,10 +64,6 @@ class ProbeRadius(Effect):
         return cls(radius=1.5 * float(ctx.probe_radius))
 
 
-TIME_OFFSET_STARTS = (-0.2, -0.15, -0.1, -0.075, -0.05, -0.025, 0.0, 0.025, 0.05, 0.075, 0.1, 0.15, 0.2)
-"""Starting clock offsets (s) of the time-offset fit."""
-
-
 @dataclass(frozen=True)
 class TimeOffset(Effect):
     """Clock offset: the probe's true position at camera time t is the kinematics'
@@ -99,13 +95,9 @@ class TimeOffset(Effect):
 
     @classmethod
     def fit_space(cls, ctx):
-        # starts on a grid: Levenberg-Marquardt from 0 stuck at 0.007 s for a 0.15 s offset.
-        # The grid is 25 ms fine within 0.1 s: on a field session (other law and damping)
-        # the train misfit against the offset is rough on that scale (measured, chi2 drop
-        # beside the nuisances: 111 at 10 ms, 264 at 25 ms, 468 at 50 ms, 77 at 75 ms) and
-        # LM from 0 ended at -0.4 ms, a fit the 0.1 s grid could not leave
+        # starts on a grid: Levenberg-Marquardt from 0 stuck at 0.007 s for a 0.15 s offset
         return FitSpace("time_offset", ("offset",), ("s",), _a(0.03), _a(-1.0), _a(1.0),
-                        tuple(_a(v) for v in TIME_OFFSET_STARTS),
+                        tuple(_a(v) for v in (-0.2, -0.1, 0.0, 0.1, 0.2)),
                         lambda x: {"kind": "time_offset", "offset": float(x[0])}, lambda x: {"offset": float(x[0])})
 
     @classmethod
