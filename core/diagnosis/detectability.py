@@ -203,7 +203,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
                   else "cannot_tell" if size is None else "not_found")
         params = dict(assumed)
         if cls.assume == "least_detectable" and len(cls.assumptions(ctx)) > 1:
-            params["note"] = "the least detectable of the directions tried"
+            params["note"] = f"the least detectable of the {cls.assumed_over} tried"
         why = _why(kind, cls, size, assumed, palp, answer)
         if kind in (small or {}) and answer != "found":
             why += f"; its fit passed on held-out data but {small[kind]}: a residual of its shape that does not reproduce"

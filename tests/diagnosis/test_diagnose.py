@@ -18,6 +18,7 @@ import pytest
 from app.cli import main
 from core.diagnosis import DiagnosisConfig, diagnose
 from core.lab.generate import PRESETS
+from core.simulation.effects.body import VISCO_RELAXATION_TIMES
 from tests._presets import SHORT_DURATION
 from tests.diagnosis._hidden import check_contract, lab_session
 
@@ -55,6 +56,10 @@ def test_no_effect_on_other_physics_gives_no_claim_through_the_command_line(no_e
             c = last[kind]
             assert not (c["delta_chi2"] > 0 and c["p_value"] <= alpha), c
             assert not (c["reproduction"]["expected"] >= c["critical"] > c["delta_chi2"]), c
+    visco = data["detectability"]["viscoelasticity"]
+    if data["answers"]["viscoelasticity"] == "not_found":  # the least detectable relaxation time, stated
+        assert visco["parameters"]["relaxation_time"] in VISCO_RELAXATION_TIMES
+        assert "relaxation times" in visco["parameters"]["note"]
     assert data["youngs_modulus"]["identifiable"] is False  # displacement only, no force, no gravity
     report = (out / "report.md").read_text()
     assert "No effect found" in report and "false-claim rate" in report

@@ -186,6 +186,9 @@ class Effect:
         placement or direction considered (see ``assume``)."""
         return ({},)
 
+    assumed_over: ClassVar[str] = "directions"
+    """What the several :meth:`assumptions` range over, in words for reports."""
+
     assume: ClassVar[str] = "least_detectable"
     """Of several :meth:`assumptions`, the detectability statement takes the
     "least_detectable" (a direction: the size that shows in every direction) or the
