@@ -164,6 +164,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     refused = dict(refused or {})  # the caller's, and the kinds train and validation disagree on
     for kind in cfg.kinds:
         cls = EFFECT_KINDS[kind]
+        options = cls.assumptions(ctx)  # once: an inclusion's ask the surface about every press
         e = nulls.get(kind)
         if kind not in claimed and kind not in in_group and kind not in refused and e is not None:
             reason = unsettled(e, cfg.alpha)
@@ -171,13 +172,13 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
                 refused[kind] = reason
         if kind in refused and kind not in claimed and kind not in in_group:
             # no size is stated, so none is simulated
-            params = dict(cls.assumptions(ctx)[0]) if cls.assumptions(ctx) else {}
+            params = dict(options[0]) if options else {}
             out[kind] = Detectability(kind, None, params, refused[kind], "cannot_tell", cls.size_unit)
             continue
         searches = cands[kind].searches
         level = cfg.alpha / max(n_kinds * searches, 1)
         best = None  # (size, assumed)
-        for assumed in cls.assumptions(ctx):
+        for assumed in options:
             e = nulls.get(kind)
             if e is not None and e.null.size > 1:
                 null = e.null
@@ -202,7 +203,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         answer = ("found" if kind in claimed else "confounded" if kind in in_group
                   else "cannot_tell" if size is None else "not_found")
         params = dict(assumed)
-        if cls.assume == "least_detectable" and len(cls.assumptions(ctx)) > 1:
+        if cls.assume == "least_detectable" and len(options) > 1:
             params["note"] = f"the least detectable of the {cls.assumed_over} tried"
         why = _why(kind, cls, size, assumed, palp, answer)
         if kind in (small or {}) and answer != "found":
