@@ -18,7 +18,9 @@ sequence: the residual is correlated within a poke) keeps its residuals, multipl
 one random weight of Webb's six-point distribution (Webb 2023, for few clusters). This
 keeps the session's noise level, its heteroscedasticity (points per bin, faces, force
 axes) and its within-block correlation, and removes any alignment with the signature.
-The p-value of a kind is the share of replicates at or above the observed ``T``, times
+The p-value of a kind is the share of replicates at or above the observed ``T`` (beyond
+the last ten replicates, the tail of a generalised Pareto distribution fitted to the
+largest ones, :func:`tail_p_value`: a count cannot go below ``1 / (R + 1)``), times
 the number of places its fit searched (an inclusion's starting locations: a
 look-elsewhere factor), and the kinds of a round are tested together by Holm's (1979)
 step-down procedure at the family-wise rate ``alpha``. A null whose median ``m`` lies below
@@ -48,7 +50,8 @@ import numpy as np
 
 from core.diagnosis.nuisance import Nuisance
 
-__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "reproduction", "holm", "holm_adjusted", "webb_weights"]
+__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "reproduction", "holm", "holm_adjusted", "tail_p_value",
+           "tail_quantile", "webb_weights"]
 
 _WEBB = np.array([-math.sqrt(1.5), -1.0, -math.sqrt(0.5), math.sqrt(0.5), 1.0, math.sqrt(1.5)])
 
@@ -57,6 +60,93 @@ def webb_weights(rng: np.random.Generator, replicates: int, clusters: int) -> np
     """(replicates, clusters) float64 weights of Webb's six-point distribution (mean 0,
     variance 1), for a wild cluster bootstrap with few clusters."""
     return _WEBB[rng.integers(0, 6, size=(replicates, clusters))]
+
+
+TAIL_MIN_COUNT = 10
+"""Below this many null replicates at or above an observed statistic (or expected above a
+quantile), the p-value and the quantile come from the null's fitted tail (Knijnenburg et
+al. 2009), not from the count."""
+
+TAIL_EXCEEDANCES = 250
+"""Replicates in the fitted tail (the largest ones; fewer, at least 50, for a small null)."""
+
+
+def _tail(null: np.ndarray):
+    """``(threshold, exceedances share, (shape, scale))`` of a generalised Pareto
+    distribution fitted by maximum likelihood (``scipy.stats.genpareto``, location 0) to the
+    excesses of the largest :data:`TAIL_EXCEEDANCES` replicates of ``null`` over the next
+    one, its shape at least 0 (the exponential tail otherwise); None when the null is too
+    small (fewer than 500 replicates) or the fit fails."""
+    from scipy import stats
+
+    x = np.asarray(null, dtype=np.float64).ravel()
+    n_exc = min(TAIL_EXCEEDANCES, x.size // 10)
+    if n_exc < 50:
+        return None
+    top = np.partition(x, x.size - n_exc - 1)[x.size - n_exc - 1:]
+    t = float(np.min(top))
+    exc = np.sort(top)[1:] - t
+    if not np.any(exc > 0):
+        return None
+    with np.errstate(all="ignore"):
+        try:
+            c, _, scale = stats.genpareto.fit(exc, floc=0.0)
+        except (ValueError, RuntimeError, FloatingPointError):
+            return None
+    if not (math.isfinite(c) and math.isfinite(scale) and scale > 0):
+        return None
+    # the null of T is a quadratic form in the noise: an exponential tail (shape 0) in
+    # theory. A fitted shape below 0 (a bounded tail; its standard error is ~0.06 at 250
+    # excesses) gave p-values 5x too small at 1e-4 on a chi-square null, so the tail is
+    # the exponential one (its maximum-likelihood scale: the mean excess) unless the fit
+    # says heavier: the more conservative of the two
+    if c <= 0.0:
+        c, scale = 0.0, float(np.mean(exc))
+    return t, n_exc / x.size, (float(c), float(scale))
+
+
+def tail_p_value(null: np.ndarray, observed: float) -> float:
+    """P(T >= observed) under the replicates ``null`` (R,).
+
+    The Monte-Carlo p-value ``(1 + #{null >= observed}) / (R + 1)`` while at least
+    :data:`TAIL_MIN_COUNT` replicates reach ``observed``; beyond, where the count says
+    little and cannot go below ``1 / (R + 1)``, the tail of a generalised Pareto
+    distribution fitted to the largest replicates (Knijnenburg, Wessels, Reinders &
+    Shmulevich 2009, "Fewer permutations, more accurate P-values", Bioinformatics 25:
+    i161). Without it, a kind with a look-elsewhere factor ``k`` could never pass Holm's
+    first step at ``alpha / m`` when ``k / (R + 1) > alpha / m`` (an inclusion searched
+    from more than 12 presses among 8 kinds with 9999 replicates, at ``alpha`` 0.01).
+    """
+    x = np.asarray(null, dtype=np.float64).ravel()
+    count = int(np.sum(x >= observed))
+    p_count = (1.0 + count) / (x.size + 1.0)
+    if count >= TAIL_MIN_COUNT:
+        return p_count
+    tail = _tail(x)
+    if tail is None or observed <= tail[0]:
+        return p_count
+    from scipy import stats
+
+    t, share, (c, scale) = tail
+    return float(share * stats.genpareto.sf(observed - t, c, loc=0.0, scale=scale))
+
+
+def tail_quantile(null: np.ndarray, level: float) -> float:
+    """The ``1 - level`` quantile of the replicates ``null`` (R,): the empirical one
+    ("higher") while at least :data:`TAIL_MIN_COUNT` replicates are expected above it,
+    else the fitted generalised Pareto tail's (:func:`tail_p_value`), so that a level
+    below ``1 / R`` still has its own critical value rather than the largest replicate."""
+    x = np.asarray(null, dtype=np.float64).ravel()
+    level = min(max(float(level), 0.0), 1.0)
+    if level * x.size >= TAIL_MIN_COUNT:
+        return float(np.quantile(x, 1.0 - level, method="higher"))
+    tail = _tail(x)
+    if tail is None:
+        return float(np.quantile(x, 1.0 - level, method="higher"))
+    from scipy import stats
+
+    t, share, (c, scale) = tail
+    return float(t + stats.genpareto.isf(min(level / share, 1.0), c, loc=0.0, scale=scale))
 
 
 def holm(p: dict[str, float], alpha: float) -> set[str]:
@@ -290,17 +380,17 @@ class HeldOutTest:
         return null - 2.0 * min(float(np.median(null)), 0.0)
 
     def p_value(self, observed: float, null: np.ndarray, searches: int = 1) -> float:
-        """Share of ``null`` replicates at or above ``observed`` (with the +1 of a
-        Monte-Carlo p-value), times ``searches``, at most 1."""
+        """Share of ``null`` replicates at or above ``observed`` (:func:`tail_p_value`: the
+        Monte-Carlo share, or its generalised Pareto tail beyond the last few replicates),
+        times ``searches``, at most 1."""
         if not math.isfinite(observed):
             return 1.0
-        p = (1.0 + float(np.sum(null >= observed))) / (null.size + 1.0)
-        return min(1.0, p * max(int(searches), 1))
+        return min(1.0, tail_p_value(null, observed) * max(int(searches), 1))
 
     def critical(self, null: np.ndarray, level: float) -> float:
-        """The (1 - level) quantile of ``null`` (the smallest T a claim at ``level`` needs)."""
-        q = min(max(1.0 - level, 0.0), 1.0)
-        return float(np.quantile(null, q, method="higher"))
+        """The (1 - level) quantile of ``null`` (the smallest T a claim at ``level`` needs),
+        :func:`tail_quantile`."""
+        return tail_quantile(null, level)
 
     def _strength_replicates(self, D_t: np.ndarray, D_v: np.ndarray):
         """``(at, GG)``: ``at(s)`` gives the (R,) replicates of ``T`` for data holding ``s``

@@ -4,7 +4,8 @@
 import numpy as np
 import pytest
 
-from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check, holm, reproduction, webb_weights
+from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, reproduction, tail_p_value,
+                                      tail_quantile, webb_weights)
 from core.diagnosis.nuisance import Nuisance
 
 
@@ -81,6 +82,37 @@ def test_p_values_of_the_wild_block_bootstrap_are_calibrated_under_the_null():
     rate = float(np.mean(np.asarray(p_blocks) < 0.05))
     assert rate <= 0.075, rate
     assert float(np.mean(np.asarray(p_iid) < 0.05)) > rate + 0.04
+
+
+def test_p_values_and_quantiles_beyond_the_replicates_follow_the_fitted_tail():
+    """Beyond the last replicates a count says only "< 1 / (R + 1)"; the fitted tail
+    (generalised Pareto, shape at least 0: Knijnenburg et al. 2009) gives the p-value and
+    the quantile there. Against the exact chi-square (3 dof, the shape of a three-parameter
+    fit's null) over eight draws of 9999 replicates, at exact p 3e-4, 1e-5 and 1e-6: never
+    below 0.35x the exact one and 0.8x in the median (a smaller p would claim more often than
+    stated), within 30x above; the quantile at level 1e-5 within -10 % / +50 %; the count
+    unchanged where ten or more replicates reach. With it, a kind whose fit searched 20
+    places among 8 kinds at alpha 0.01 can pass Holm's first step (the count's smallest
+    p-value, 20 / 10000, never could)."""
+    from scipy import stats
+
+    rng = np.random.default_rng(7)
+    ratios = []
+    for _ in range(8):
+        null = rng.chisquare(3, size=9999)
+        for q in (3e-4, 1e-5, 1e-6):
+            ratios.append(tail_p_value(null, stats.chi2.isf(q, 3)) / q)
+        assert 0.9 < tail_quantile(null, 1e-5) / stats.chi2.isf(1e-5, 3) < 1.5
+        x = float(np.sort(null)[-30])  # thirty replicates reach it: the count
+        assert tail_p_value(null, x) == pytest.approx(31 / 10000)
+        assert tail_quantile(null, 0.01) == float(np.quantile(null, 0.99, method="higher"))
+        p = min(1.0, 20 * tail_p_value(null, 45.0))
+        assert holm({"inclusion": p, **{f"k{i}": 0.5 for i in range(7)}}, 0.01) == {"inclusion"}
+    ratios = np.asarray(ratios)
+    assert ratios.min() > 0.35 and np.median(ratios) > 0.8 and ratios.max() < 30, np.round(ratios, 2)
+    # a small or degenerate null keeps the count
+    assert tail_p_value(np.zeros(1), 3.0) == 0.5
+    assert tail_p_value(np.ones(2000), 3.0) == pytest.approx(1 / 2001)
 
 
 def test_a_real_effect_is_found_and_the_min_strength_matches_where_it_shows():
