@@ -30,7 +30,9 @@ Per case it prints one line as it finishes; at the end, separately with and with
 the confusion matrix (hidden kind x named kinds, "none" and "confounded"), the
 false-claim rate on no-effect sessions, the share of effects at or above the stated
 ``min_size`` that were named exactly, the share of misses that were honest (the stated
-``min_size`` above the hidden size, or None, or the hidden kind confounded), spurious
+``min_size`` above the hidden size, or None, or the hidden kind confounded; for an
+inclusion, the size stated at the placement nearest it, :func:`applicable_min_size`, and
+a count of those no stated placement covers), spurious
 extra claims beside the hidden kind, the mean relative parameter error of exact correct
 claims per kind, the coverage of the lab's E by the reported E interval (sessions with
 force), and the wall time and simulations per diagnosis.
@@ -136,6 +138,38 @@ def case_session(root: Path, cfg: LabConfig, kind: str, seed: int, effects: list
     return path, time.perf_counter() - t0
 
 
+PLACEMENT_TOLERANCE = 0.005
+"""m: a hidden inclusion within this of a stated placement's centre is judged by that
+placement's min_size (the presses are merged at 5 mm, the same scale)."""
+
+
+def applicable_min_size(det, hidden: dict) -> tuple[float | None, bool]:
+    """The stated size that applies to the ``hidden`` effect, and whether any does.
+
+    A placed kind (an inclusion) states a min_size under each press and one
+    ``beside_distance`` to the side of the best-placed one (``parameters["placements"]``,
+    ``parameters["beside"]``): a hidden inclusion is judged by the placement within
+    :data:`PLACEMENT_TOLERANCE` of its centre, else by the "beside" statement when it lies
+    that far (within the tolerance) from the best placement; otherwise no statement covers
+    it ``(None, False)``: "not found" said nothing about it. Other kinds: ``(min_size, True)``.
+    """
+    places = det.parameters.get("placements") if isinstance(det.parameters, dict) else None
+    if not places or "center" not in hidden:
+        return det.min_size, True
+    c = np.asarray(hidden["center"], dtype=float)
+    dist = [float(np.linalg.norm(np.asarray(p["center"], dtype=float) - c)) for p in places]
+    i = int(np.argmin(dist))
+    if dist[i] <= PLACEMENT_TOLERANCE:
+        return places[i]["min_size"], True
+    beside = det.parameters.get("beside")
+    best = det.parameters.get("center")
+    if beside and best is not None:
+        r = float(np.linalg.norm(np.asarray(best, dtype=float) - c))
+        if abs(r - float(beside["distance"])) <= PLACEMENT_TOLERANCE:
+            return beside["min_size"], True
+    return None, False
+
+
 def _fmt(v: float | None, unit: str = "") -> str:
     return "-" if v is None else f"{v:.3g}{' ' + unit if unit else ''}"
 
@@ -176,7 +210,8 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
     rec["youngs"] = {k: d.youngs.get(k) for k in ("value", "interval", "identifiable")}
     rec["answers"] = d.answers()
     det = (d.detectability or {}).get(kind) if kind != "none" else None
-    rec["min_size"] = det.min_size if det is not None else None
+    rec["stated_min_size"] = det.min_size if det is not None else None
+    rec["min_size"], rec["covered"] = applicable_min_size(det, effects[0]) if det is not None else (None, True)
     rec["answer"] = det.answer if det is not None else None
     rec["parameter_error"] = None
     if kind != "none" and named == [kind]:
@@ -189,7 +224,9 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
         line += f", confounded {rec['confounded']}"
     if kind != "none":
         unit = EFFECT_KINDS[kind].size_unit
-        line += (f"; hidden {_fmt(size, unit)}, min_size {_fmt(rec['min_size'], unit)}, answer {rec['answer']}")
+        line += (f"; hidden {_fmt(size, unit)}, min_size {_fmt(rec['stated_min_size'], unit)}"
+                 + (f" (at its placement {_fmt(rec['min_size'], unit)})" if rec["min_size"] != rec["stated_min_size"] and rec["covered"] else "")
+                 + ("" if rec["covered"] else " (no stated placement covers it)") + f", answer {rec['answer']}")
         if rec["parameter_error"] is not None:
             line += f", parameter error {100 * rec['parameter_error']:.0f} %"
     y = rec["youngs"]
@@ -271,6 +308,7 @@ def print_summary(records: list[dict], kinds: list[str], workers: int) -> None:
             misses = [r for r in hidden if r["kind"] not in r["named"]]
             honest = [r for r in misses if r["min_size"] is None or r["min_size"] > r["hidden_size"]
                       or any(r["kind"] in g for g in r["confounded"])]
+            uncovered = [r for r in misses if not r.get("covered", True)]
             extra = [r for r in hidden if any(n != r["kind"] for n in r["named"])]
             n_extra = sum(sum(n != r["kind"] for n in r["named"]) for r in hidden)
             print(f"\n3. hidden effects: {len(hidden)} cases, {len(det)} at or above their stated min_size")
@@ -278,6 +316,9 @@ def print_summary(records: list[dict], kinds: list[str], workers: int) -> None:
             print(f"   named exactly, of all: {_share(sum(r['named'] == [r['kind']] for r in hidden), len(hidden))}")
             print(f"   misses (hidden kind not named): {len(misses)}; honest: {_share(len(honest), len(misses))} "
                   f"(target: all)")
+            if uncovered:
+                print(f"   of the honest misses, {len(uncovered)} lay outside every stated placement (no press near): "
+                      + ", ".join(f"{r['kind']} seed {r['seed']}" for r in uncovered))
             honest_ids = {id(r) for r in honest}
             dishonest = [r for r in misses if id(r) not in honest_ids]
             if dishonest:

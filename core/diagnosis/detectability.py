@@ -78,9 +78,18 @@ def _min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed: dic
     return found
 
 
+def _short(v):
+    """A parameter for a sentence: floats to 4 significant digits (0.1 mm in m), lists of them too."""
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(str(_short(x)) for x in v) + "]"
+    return v
+
+
 def _why(kind: str, cls, min_size: float | None, assumed: dict, palp: dict, answer: str) -> str:
     unit = cls.size_unit
-    said = ", ".join(f"{k} {v}" for k, v in assumed.items()) if assumed else ""
+    said = ", ".join(f"{k} {_short(v)}" for k, v in assumed.items()) if assumed else ""
     channels = "the surface and the probe force" if palp.get("force") else "the surface (no force recorded)"
     if min_size is None:
         hint = {
@@ -103,6 +112,18 @@ def _why(kind: str, cls, min_size: float | None, assumed: dict, palp: dict, answ
     if answer == "confounded":
         return "confounded with another kind that explains the same residual; " + text
     return "not found: " + text
+
+
+def _pick(sized: list[tuple[float | None, dict]], assume: str) -> tuple[float | None, dict] | None:
+    """Of ``[(min_size or None, assumed), ...]`` the least detectable (None, "cannot tell",
+    beats any size; else the largest) or the most detectable (the smallest size); None
+    for an empty list."""
+    if not sized:
+        return None
+    if assume == "least_detectable":
+        return next((x for x in sized if x[0] is None), None) or max(sized, key=lambda x: x[0])
+    told = [x for x in sized if x[0] is not None]
+    return min(told, key=lambda x: x[0]) if told else sized[0]
 
 
 def unsettled(e, alpha: float) -> str | None:
@@ -177,35 +198,47 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
             continue
         searches = cands[kind].searches
         level = cfg.alpha / max(n_kinds * searches, 1)
-        best = None  # (size, assumed)
-        for assumed in options:
-            e = nulls.get(kind)
+        e = nulls.get(kind)
+
+        def size_of(assumed):
+            """(min_size or None, True) of ``assumed``; (None, False) when its signature diverged."""
             if e is not None and e.null.size > 1:
                 null = e.null
             else:
                 sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
                 if sig is None:
-                    continue
+                    return None, False
                 null = rnd.test.null(sig[0][:, None], sig[1][:, None])
             critical = max(rnd.test.critical(null, level), 0.0)
             size = _min_size(ev, rnd, cls, ctx, assumed, critical)
-            size = None if size is None or size > cls.max_size else size
-            if best is None:
-                best = (size, assumed)
-            elif cls.assume == "least_detectable":
-                if best[0] is not None and (size is None or size > best[0]):
-                    best = (size, assumed)
-            elif size is not None and (best[0] is None or size < best[0]):
-                best = (size, assumed)
-        if best is None:
-            best = (None, {})
-        size, assumed = best
+            return (None if size is None or size > cls.max_size else size), True
+
+        sized = [(size, assumed) for assumed in options for size, ok in [size_of(assumed)] if ok]
+        best = _pick(sized, cls.assume)
+        size, assumed = best if best is not None else (None, {})
         answer = ("found" if kind in claimed else "confounded" if kind in in_group
                   else "cannot_tell" if size is None else "not_found")
         params = dict(assumed)
         if cls.assume == "least_detectable" and len(options) > 1:
             params["note"] = f"the least detectable of the {cls.assumed_over} tried"
+        beside_text = ""
+        if cls.assume == "most_detectable" and best is not None:
+            params["placements"] = [{**a, "min_size": s} for s, a in sized]
+            near = cls.beside(ctx, assumed) if answer == "not_found" else ()
+            if near:
+                # how far a press's reach extends: the least detectable of the placements
+                # one beside_distance to the side of the best one
+                far = _pick([(s, a) for a in near for s, ok in [size_of(a)] if ok], "least_detectable")
+                far_size = None if far is None else far[0]
+                params["beside"] = {"distance": cls.beside_distance, "min_size": far_size}
+                beside_text = (f"; {cls.beside_distance * 1e3:.0f} mm to the side of it "
+                               + (f"{far_size:.3g} {cls.size_unit}" if far_size is not None else "it could not be told at any size"))
         why = _why(kind, cls, size, assumed, palp, answer)
+        if cls.assume == "most_detectable" and (len(sized) > 1 or beside_text):
+            told = [s for s, _ in sized if s is not None]
+            spread = (f": {min(told):.3g}-{max(told):.3g}" if len(told) > 1 else "") + (
+                f", {len(sized) - len(told)} of them could not be told" if len(told) < len(sized) else "")
+            why += f" (best-placed of {len(sized)} placements under the presses{spread}{beside_text})"
         if kind in (small or {}) and answer != "found":
             why += f"; its fit passed on held-out data but {small[kind]}: a residual of its shape that does not reproduce"
         out[kind] = Detectability(kind, size, params, why, answer, cls.size_unit)

@@ -178,7 +178,8 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
                   "| kind | answer | smallest size these data would claim | assumed | why |", "|---|---|---|---|---|"]
         for k, d in diag.detectability.items():
             size = "none (cannot tell at any size)" if d.min_size is None else f"{d.min_size:.3g} {d.unit}"
-            assumed = ", ".join(f"{a}={json.dumps(v)}" for a, v in d.parameters.items())
+            # the placements and the reach beside the best one are in its why, in words
+            assumed = ", ".join(f"{a}={json.dumps(v)}" for a, v in d.parameters.items() if a not in ("placements", "beside"))
             lines.append(f"| {k} | {words.get(d.answer, d.answer)} | {size} | {assumed} | {d.why} |")
     nuis = ", ".join(diag.nuisances) or "none"
     lines += ["", "![evidence](evidence.png)", "",

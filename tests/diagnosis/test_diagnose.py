@@ -60,6 +60,14 @@ def test_no_effect_on_other_physics_gives_no_claim_through_the_command_line(no_e
     assert visco["parameters"]["relaxation_time"] in VISCO_RELAXATION_TIMES  # stated with every answer
     if data["answers"]["viscoelasticity"] == "not_found":  # the least detectable relaxation time
         assert "relaxation times" in visco["parameters"]["note"]
+    inclusion = data["detectability"]["inclusion"]
+    if inclusion["min_size"] is not None:  # the best of the placements under the presses, each stated
+        places = inclusion["parameters"]["placements"]
+        told = [p["min_size"] for p in places if p["min_size"] is not None]
+        assert inclusion["min_size"] == min(told) and inclusion["parameters"]["center"] in [p["center"] for p in places]
+        beside = inclusion["parameters"]["beside"]  # and 10 mm to its side: harder to see
+        assert beside["distance"] == 0.010 and (beside["min_size"] is None or beside["min_size"] > inclusion["min_size"])
+        assert "10 mm to the side" in inclusion["why"]
     assert data["youngs_modulus"]["identifiable"] is False  # displacement only, no force, no gravity
     report = (out / "report.md").read_text()
     assert "No effect found" in report and "false-claim rate" in report

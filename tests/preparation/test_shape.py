@@ -138,3 +138,29 @@ def test_an_inclusion_on_a_dome_starts_and_stays_inside_it(dome):
     p, n = PhantomContext(SIZE, 0.005).default_press()
     np.testing.assert_allclose(p, [SIZE[0] / 2, SIZE[1] / 2, SIZE[2]])
     np.testing.assert_allclose(n, [0.0, 0.0, 1.0])
+
+
+def test_placements_beside_an_inclusion_lie_one_radius_along_the_surface_at_its_depth(dome):
+    """Inclusion.beside: the detectability statement's "10 mm to the side of the best
+    placement": four spheres at the same depth under the surface, 10 mm away along it, inside
+    the phantom. On the box's top they move in x and y at z = top - 12 mm; on the dome they
+    stay 12 mm under its curved surface."""
+    cls = EFFECT_KINDS["inclusion"]
+    box = PhantomContext(SIZE, 0.005, np.array([[0.03, 0.02]]))
+    (a,) = cls.assumptions(box)
+    near = cls.beside(box, a)
+    assert len(near) == 4
+    moves = np.array([np.asarray(b["center"]) - np.asarray(a["center"]) for b in near])
+    np.testing.assert_allclose(np.abs(moves).sum(axis=1), 0.010, atol=1e-9)  # one axis, 10 mm
+    np.testing.assert_allclose(moves[:, 2], 0.0, atol=1e-12)  # same depth under the top
+    assert {tuple(np.sign(np.round(m[:2] * 1e3))) for m in moves} == {(1, 0), (-1, 0), (0, 1), (0, -1)}
+    press = CENTRE + R * np.array([0.0, 0.0, 1.0])  # the apex
+    ctx = PhantomContext(dome.size, 0.005, press[None], ((press - CENTRE) / R)[None], dome)
+    (a,) = cls.assumptions(ctx)
+    for b in cls.beside(ctx, a):
+        c = np.asarray(b["center"])
+        assert abs(dome.clearance(c[None])[0] + 0.012) < 1e-3  # inside, 12 mm under the surface
+        # 10 mm along the surface is 10 (R - 12 mm) / R at the sphere's depth
+        assert np.linalg.norm(c - np.asarray(a["center"])) == pytest.approx(0.010 * (R - 0.012) / R, rel=0.1)
+    # kinds without a placement have none beside
+    assert EFFECT_KINDS["gravity"].beside(box, {"direction": [0, 0, -1]}) == ()

@@ -194,6 +194,18 @@ class Effect:
     "least_detectable" (a direction: the size that shows in every direction) or the
     "most_detectable" (a placement: "best-placed under the palpated region")."""
 
+    beside_distance: ClassVar[float | None] = None
+    """For a placed kind ("most_detectable"), how far (m) to the side of its best placement
+    the detectability statement also says how large it would have to be
+    (:meth:`beside`); None: the kind has no placement."""
+
+    @classmethod
+    def beside(cls, ctx: PhantomContext, assumed: dict) -> tuple[dict, ...]:
+        """Placements :attr:`beside_distance` to the side of the ``assumed`` one (the same
+        parameters otherwise), for the statement's "and this far away from it"; empty for a
+        kind without a placement."""
+        return ()
+
     @classmethod
     def sized(cls, size: float, ctx: PhantomContext, **assumed) -> "Effect":
         """An effect of this kind of ``size`` with the ``assumed`` parameters."""

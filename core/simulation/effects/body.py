@@ -141,6 +141,28 @@ class Inclusion(Effect):
         pts = ctx.under(0.012) if len(ctx.presses) else _under_default(ctx, 0.012)[None]
         return tuple({"center": [float(v) for v in ctx.shape.keep_inside(c, 0.010)], "radius": 0.010} for c in pts)
 
+    beside_distance: ClassVar[float | None] = 0.010
+
+    @classmethod
+    def beside(cls, ctx, assumed):
+        # the same sphere at the same depth, moved one radius (10 mm) along the surface in
+        # four directions of its tangent plane: how far a press's reach extends (the
+        # statement under the press says nothing of an inclusion between presses)
+        c = np.asarray(assumed["center"], float)
+        radius = float(assumed.get("radius", 0.010))
+        p, n = ctx.shape.project(c[None])
+        p, n = p[0], n[0]
+        depth = float(np.dot(p - c, n))
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        out = []
+        for t in (t1, -t1, t2, -t2):
+            q, m = ctx.shape.project((p + cls.beside_distance * t)[None])
+            moved = ctx.shape.keep_inside(q[0] - depth * m[0], radius)
+            out.append({"center": [float(v) for v in moved], "radius": radius})
+        return tuple(out)
+
     @classmethod
     def sized(cls, size, ctx, center=None, radius=0.010):
         c = np.asarray(center, float) if center is not None else _under_default(ctx, 0.012)
