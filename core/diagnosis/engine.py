@@ -57,7 +57,7 @@ import numpy as np
 
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import detectability
+from core.diagnosis.detectability import detectability, unobservable
 from core.diagnosis.evidence import Directions, Evidence, Spec
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
@@ -308,9 +308,11 @@ def diagnose_prepared(
     claimed: list[tuple[FitSpace, Fit, CauseReport]] = []
     reports: list[CauseReport] = []
     confounded: list[list[str]] = []
-    refused: dict[str, str] = {}  # kinds significant but refused by channel_worsening: why
+    # kinds these presses cannot show at any size (friction without slides): not fitted
+    blind = unobservable(cfg.kinds, palpation(prepared, ev.names["train"]), palpation(prepared, ev.names["validation"]))
+    refused: dict[str, str] = dict(blind)  # kinds significant but refused by channel_worsening, or blind: why
     small: dict[str, str] = {}  # kinds significant whose fitted change is below a claim: why
-    active = list(cands)
+    active = [k for k in cands if k not in blind]
     last: _Round | None = None
     last_evidence: dict[str, _Evidence] = {}
     last_fits: dict[str, Fit] = {}

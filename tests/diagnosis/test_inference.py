@@ -242,3 +242,21 @@ def test_a_kind_the_data_lean_towards_or_disagree_on_is_not_called_absent():
     assert unsettled(evidence(2376.0, 2630.0, 0.011, S=1500.0), 0.01) is None
     assert unsettled(evidence(-40.0, 100.0, 0.001, S=20.0), 0.01) is None
     assert unsettled(evidence(50.0, float("inf"), 0.3, S=600.0), 0.01) is None
+
+
+def test_friction_without_a_slide_in_train_and_validation_is_not_fitted_and_cannot_be_told():
+    """detectability.unobservable: friction is fitted only when both the train and the
+    validation sequences slid along the surface; otherwise it is "cannot tell", naming the
+    sequences without a slide. Other kinds stay candidates whatever the palpation."""
+    from core.diagnosis.detectability import unobservable
+    from core.simulation.effects import EFFECT_KINDS
+
+    kinds = tuple(EFFECT_KINDS)
+    slid, pressed = {"top_presses": 3, "slides": 1}, {"top_presses": 3, "slides": 0}
+    assert unobservable(kinds, slid, slid) == {}
+    for train, validation, missing in ((pressed, slid, "train"), (slid, pressed, "validation"),
+                                       (pressed, pressed, "train and validation")):
+        blind = unobservable(kinds, train, validation)
+        assert set(blind) == {"friction"}
+        assert blind["friction"].startswith("cannot tell") and f"in the {missing} sequences" in blind["friction"]
+    assert unobservable(tuple(k for k in kinds if k != "friction"), pressed, pressed) == {}
