@@ -225,18 +225,17 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
             continue
         searches = cands[kind].searches
         level = cfg.alpha / max(n_kinds * searches, 1)
-        e = nulls.get(kind)
+        # the round's fit of the kind gives one null for every placement: its critical value once
+        shared = max(rnd.test.critical(e.null, level), 0.0) if e is not None and e.null.size > 1 else None
 
         def size_of(assumed):
             """(min_size or None, True) of ``assumed``; (None, False) when its signature diverged."""
-            if e is not None and e.null.size > 1:
-                null = e.null
-            else:
+            critical = shared
+            if critical is None:
                 sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
                 if sig is None:
                     return None, False
-                null = rnd.test.null(sig[0][:, None], sig[1][:, None])
-            critical = max(rnd.test.critical(null, level), 0.0)
+                critical = max(rnd.test.critical(rnd.test.null(sig[0][:, None], sig[1][:, None]), level), 0.0)
             size = _min_size(ev, rnd, cls, ctx, assumed, critical)
             return (None if size is None or size > cls.max_size else size), True
 
