@@ -126,30 +126,65 @@ def _pick(sized: list[tuple[float | None, dict]], assume: str) -> tuple[float | 
     return min(told, key=lambda x: x[0]) if told else sized[0]
 
 
+def _friction_blind(palp: dict) -> bool:
+    return not palp.get("slides")
+
+
+def _probe_radius_blind(palp: dict) -> bool:
+    return not palp.get("force") and not palp.get("side_presses")
+
+
+_BLIND = {
+    # kind: (the palpation a set of sequences must lack to be blind to it, what would show it)
+    "friction": (_friction_blind, "no press slid along the surface",
+                 "friction leaves no trace in presses normal to a nearly incompressible gel, so it was not fitted "
+                 "(a slide of a few millimetres in each would show it)"),
+    "probe_radius": (_probe_radius_blind, "every press was into the top, without force",
+                     "from the surface alone a larger sphere's dent is a deeper press's dent (and our contact's own "
+                     "sinking), so it was not fitted (the probe force, or a press into a side face, in each would "
+                     "show it)"),
+}
+"""Kinds that some palpation cannot show at any size: {kind: (blind(palpation) -> bool, what
+the sequences lacked, why that hides the kind and what would show it)}."""
+
+
 def unobservable(kinds, palp_train: dict, palp_validation: dict) -> dict[str, str]:
     """{kind: why} of the kinds of ``kinds`` that the palpation of these sequences cannot
-    show at any size, so that they are not fitted and are answered "cannot tell".
+    show at any size, so that they are not fitted and are answered "cannot tell". A kind is
+    fitted only when the train sequences (to fit it) and the validation sequences (to judge
+    it) both palpated in a way that shows it:
 
-    Friction needs a slide in the train sequences (to fit it) and in the validation
-    sequences (to judge it): in presses normal to the surface of a nearly incompressible
-    gel, friction between the probe and the surface barely changes the dent or the force
-    (for Poisson's ratio 0.5, frictional and frictionless indentation coincide: Spence
-    1975), so a fit of it there only soaks up the contact's and the mesh's model-form gap.
-    Measured before this rule (field preset, force columns, every press normal to the top):
-    mu 1.8 claimed on no-effect seed 902 and mu 2.0 in place of a hidden inclusion on seed
-    25, both at the bound of mu, 94-96 % of their held-out drop in the force channel.
+    - friction needs a slide: in presses normal to the surface of a nearly incompressible
+      gel, friction between the probe and the surface barely changes the dent or the force
+      (for Poisson's ratio 0.5, frictional and frictionless indentation coincide: Spence
+      1975), so a fit of it there only soaks up the contact's and the mesh's model-form gap.
+      Measured before this rule (field preset, force columns, every press normal to the
+      top): mu 1.8 claimed on no-effect seed 902 and mu 2.0 in place of a hidden inclusion
+      on seed 25, both at the bound of mu, 94-96 % of their held-out drop in the force channel.
+    - the probe radius needs the probe force or a press into a side face: outside the
+      contact, which the probe hides from the camera, a sphere of radius R pressed to depth
+      d dents the surface like a point load ~ sqrt(R) d^(3/2) (Hertz; Johnson 1985, ch. 3),
+      so from the surface alone a larger sphere is a deeper press, and a deeper press is what
+      the replay's penalty contact (the sphere sinks into the replayed surface, issue 16)
+      lacks. Measured before this rule: no-effect seed 941 (field preset, no force, three
+      top presses) claimed a radius of 8.2 mm for 5 mm (T 2001 against a critical 311).
 
     Args:
         kinds: candidate kinds. palp_train, palp_validation:
             :func:`core.diagnosis.summary.palpation` of the train and the validation
             sequences.
+
+    Returns:
+        {kind: "cannot tell from this data: ..."} naming the sequences that lacked it.
     """
     out = {}
-    if "friction" in kinds and not (palp_train.get("slides") and palp_validation.get("slides")):
-        where = [r for r, p in (("train", palp_train), ("validation", palp_validation)) if not p.get("slides")]
-        out["friction"] = (f"cannot tell from this data: no press slid along the surface in the {' and '.join(where)} "
-                           "sequences; friction leaves no trace in presses normal to a nearly incompressible gel, so "
-                           "it was not fitted (a slide of a few millimetres in each would show it)")
+    for kind in kinds:
+        if kind not in _BLIND:
+            continue
+        blind, lacked, why = _BLIND[kind]
+        where = [r for r, p in (("train", palp_train), ("validation", palp_validation)) if blind(p)]
+        if where:
+            out[kind] = f"cannot tell from this data: {lacked} in the {' and '.join(where)} sequences; {why}"
     return out
 
 

@@ -62,6 +62,8 @@ def test_no_effect_on_other_physics_gives_no_claim_through_the_command_line(no_e
         assert "relaxation times" in visco["parameters"]["note"]
     if not data["palpation"]["slides"]:  # friction needs a slide: not fitted, cannot tell
         assert data["answers"]["friction"] == "cannot_tell" and "friction" not in last
+    if not data["palpation"]["force"] and not data["palpation"]["side_presses"]:  # top presses, no force
+        assert data["answers"]["probe_radius"] == "cannot_tell" and "probe_radius" not in last
     inclusion = data["detectability"]["inclusion"]
     if inclusion["min_size"] is not None:  # the best of the placements under the presses, each stated
         places = inclusion["parameters"]["placements"]

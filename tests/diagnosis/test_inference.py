@@ -252,7 +252,7 @@ def test_friction_without_a_slide_in_train_and_validation_is_not_fitted_and_cann
     from core.simulation.effects import EFFECT_KINDS
 
     kinds = tuple(EFFECT_KINDS)
-    slid, pressed = {"top_presses": 3, "slides": 1}, {"top_presses": 3, "slides": 0}
+    slid, pressed = {"top_presses": 3, "slides": 1, "force": True}, {"top_presses": 3, "slides": 0, "force": True}
     assert unobservable(kinds, slid, slid) == {}
     for train, validation, missing in ((pressed, slid, "train"), (slid, pressed, "validation"),
                                        (pressed, pressed, "train and validation")):
@@ -260,3 +260,26 @@ def test_friction_without_a_slide_in_train_and_validation_is_not_fitted_and_cann
         assert set(blind) == {"friction"}
         assert blind["friction"].startswith("cannot tell") and f"in the {missing} sequences" in blind["friction"]
     assert unobservable(tuple(k for k in kinds if k != "friction"), pressed, pressed) == {}
+
+
+def test_probe_radius_from_top_presses_without_force_is_not_fitted_and_cannot_be_told():
+    """detectability.unobservable: the probe radius is fitted only when both the train and
+    the validation sequences recorded the probe force or pressed into a side face; from top
+    presses without force it is "cannot tell", naming the sequences, and the answer tells
+    what would show it. Other kinds (friction aside, which needs slides) stay candidates."""
+    from core.diagnosis.detectability import unobservable
+    from core.simulation.effects import EFFECT_KINDS
+
+    kinds = tuple(EFFECT_KINDS)
+    top = {"top_presses": 3, "side_presses": 0, "slides": 1, "force": False}
+    side = dict(top, side_presses=1)
+    forced = dict(top, force=True)
+    for shows in (side, forced):
+        assert unobservable(kinds, shows, shows) == {}
+        for train, validation, missing in ((top, shows, "train"), (shows, top, "validation"),
+                                           (top, top, "train and validation")):
+            blind = unobservable(kinds, train, validation)
+            assert set(blind) == {"probe_radius"}
+            why = blind["probe_radius"]
+            assert why.startswith("cannot tell") and f"in the {missing} sequences" in why and "force" in why
+    assert unobservable(tuple(k for k in kinds if k != "probe_radius"), top, top) == {}
