@@ -143,31 +143,42 @@ PLACEMENT_TOLERANCE = 0.005
 placement's min_size (the presses are merged at 5 mm, the same scale)."""
 
 
-def applicable_min_size(det, hidden: dict) -> tuple[float | None, bool]:
-    """The stated size that applies to the ``hidden`` effect, and whether any does.
+RADIUS_TOLERANCE = 0.0005
+"""m: a hidden inclusion this much smaller than the statements' sphere is not judged by them."""
+
+
+def applicable_min_size(det, hidden: dict) -> tuple[float | None, bool, str]:
+    """The stated size that applies to the ``hidden`` effect, whether any does, and which.
 
     A placed kind (an inclusion) states a min_size under each press and one
     ``beside_distance`` to the side of the best-placed one (``parameters["placements"]``,
     ``parameters["beside"]``): a hidden inclusion is judged by the placement within
     :data:`PLACEMENT_TOLERANCE` of its centre, else by the "beside" statement when it lies
     that far (within the tolerance) from the best placement; otherwise no statement covers
-    it ``(None, False)``: "not found" said nothing about it. Other kinds: ``(min_size, True)``.
+    it ``(None, False, "")``: "not found" said nothing about it. The statements are for a sphere
+    of their ``radius``: a smaller hidden one (by more than :data:`RADIUS_TOLERANCE`) shows
+    less at the same stiffness ratio, and none covers it either. The third item names the
+    statement ("its placement", "beside the best placement"; "" for other kinds). Other
+    kinds: ``(min_size, True, "")``.
     """
     places = det.parameters.get("placements") if isinstance(det.parameters, dict) else None
     if not places or "center" not in hidden:
-        return det.min_size, True
+        return det.min_size, True, ""
+    stated_radius = min(float(p.get("radius", 0.010)) for p in places)
+    if float(hidden.get("radius", stated_radius)) < stated_radius - RADIUS_TOLERANCE:
+        return None, False, ""
     c = np.asarray(hidden["center"], dtype=float)
     dist = [float(np.linalg.norm(np.asarray(p["center"], dtype=float) - c)) for p in places]
     i = int(np.argmin(dist))
     if dist[i] <= PLACEMENT_TOLERANCE:
-        return places[i]["min_size"], True
+        return places[i]["min_size"], True, "its placement"
     beside = det.parameters.get("beside")
     best = det.parameters.get("center")
     if beside and best is not None:
         r = float(np.linalg.norm(np.asarray(best, dtype=float) - c))
         if abs(r - float(beside["distance"])) <= PLACEMENT_TOLERANCE:
-            return beside["min_size"], True
-    return None, False
+            return beside["min_size"], True, f"{1e3 * float(beside['distance']):.0f} mm beside the best placement"
+    return None, False, ""
 
 
 def _fmt(v: float | None, unit: str = "") -> str:
@@ -211,7 +222,7 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
     rec["answers"] = d.answers()
     det = (d.detectability or {}).get(kind) if kind != "none" else None
     rec["stated_min_size"] = det.min_size if det is not None else None
-    rec["min_size"], rec["covered"] = applicable_min_size(det, effects[0]) if det is not None else (None, True)
+    rec["min_size"], rec["covered"], rec["statement"] = applicable_min_size(det, effects[0]) if det is not None else (None, True, "")
     rec["answer"] = det.answer if det is not None else None
     rec["parameter_error"] = None
     if kind != "none" and named == [kind]:
@@ -225,8 +236,8 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
     if kind != "none":
         unit = EFFECT_KINDS[kind].size_unit
         line += (f"; hidden {_fmt(size, unit)}, min_size {_fmt(rec['stated_min_size'], unit)}"
-                 + (f" (at its placement {_fmt(rec['min_size'], unit)})" if rec["min_size"] != rec["stated_min_size"] and rec["covered"] else "")
-                 + ("" if rec["covered"] else " (no stated placement covers it)") + f", answer {rec['answer']}")
+                 + (f" ({rec['statement']}: {_fmt(rec['min_size'], unit)})" if rec["statement"] and rec["min_size"] != rec["stated_min_size"] else "")
+                 + ("" if rec["covered"] else " (no statement covers it: its placement or radius)") + f", answer {rec['answer']}")
         if rec["parameter_error"] is not None:
             line += f", parameter error {100 * rec['parameter_error']:.0f} %"
     y = rec["youngs"]
@@ -317,7 +328,7 @@ def print_summary(records: list[dict], kinds: list[str], workers: int) -> None:
             print(f"   misses (hidden kind not named): {len(misses)}; honest: {_share(len(honest), len(misses))} "
                   f"(target: all)")
             if uncovered:
-                print(f"   of the honest misses, {len(uncovered)} lay outside every stated placement (no press near): "
+                print(f"   of the honest misses, {len(uncovered)} no statement covered (away from every stated placement, or smaller than the stated sphere): "
                       + ", ".join(f"{r['kind']} seed {r['seed']}" for r in uncovered))
             honest_ids = {id(r) for r in honest}
             dishonest = [r for r in misses if id(r) not in honest_ids]

@@ -48,7 +48,7 @@ def hidden_effects(kind: str, seed: int, shape: str = "box") -> list[dict]:
     ``shape`` (an inclusion lies under its surface), drawn with
     ``numpy.random.default_rng(1000 + seed)``.
 
-    Magnitudes: standard gravity; a 9 mm inclusion 6x stiffer than the bulk, 2 mm under
+    Magnitudes: standard gravity; a 10 mm inclusion 6x stiffer than the bulk, 2 mm under
     the top, its centre varied with the seed; a Maxwell arm twice as stiff as the elastic
     solid relaxing in 0.5 s; Coulomb friction 0.8 (wet gel on steel is 0.3-1); a
     foundation of 5e4 Pa/m (a 5 kPa gel on a soft pad); a 7.5 mm probe recorded as 5 mm;

@@ -207,17 +207,18 @@ class Inclusion(Effect):
 
     @classmethod
     def example(cls, ctx, rng):
-        # 9 mm, 6x stiffer, its top 2 mm under the surface, over the middle of the top
+        # 10 mm (the size detectability states its stiffness ratio for, SESSION_FORMAT.md),
+        # 6x stiffer, its top 2 mm under the surface, over the middle of the top
         sx, sy, sz = (float(v) for v in ctx.size)
         if ctx.shape.is_box:
-            c = np.array([rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.011])
+            c = np.array([rng.uniform(0.3, 0.7) * sx, rng.uniform(0.35, 0.65) * sy, sz - 0.012])
         else:
             lo = np.asarray(ctx.shape.lower, float)
             above = lo + np.array([rng.uniform(0.3, 0.7), rng.uniform(0.35, 0.65), 0.0]) * (ctx.size - lo)
             above[2] = sz + 0.05
             p, n = ctx.shape.project(above[None])
-            c = p[0] - 0.011 * n[0]
-        return cls(center=tuple(float(v) for v in ctx.shape.keep_inside(c, 0.009)), radius=0.009, stiffness_ratio=6.0)
+            c = p[0] - 0.012 * n[0]
+        return cls(center=tuple(float(v) for v in ctx.shape.keep_inside(c, 0.010)), radius=0.010, stiffness_ratio=6.0)
 
 
 def _under_default(ctx, depth: float) -> np.ndarray:
