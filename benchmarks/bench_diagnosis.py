@@ -370,9 +370,12 @@ def print_summary(records: list[dict], kinds: list[str], workers: int) -> None:
             cover = [r for r in ys if _contains(r)]
             ident = [r for r in ys if r["youngs"].get("identifiable")]
             ratios = [r["youngs"]["value"] / r["lab_youngs"] for r in ys if r["youngs"].get("value") is not None]
+            stated = [r for r in ys if r["youngs"].get("interval")]
+            held = [r for r in stated if r["youngs"]["interval"][0] <= r["lab_youngs"] <= r["youngs"]["interval"][1]]
             target = " (target >= 90 %)" if force else " (no target without force)"
             print(f"\n5. E: interval identifiable and containing the lab's E in {_share(len(cover), len(ys))}{target}; "
-                  f"identifiable in {_share(len(ident), len(ys))}; value / lab E: median "
+                  f"identifiable in {_share(len(ident), len(ys))}, of those containing it {_share(len(cover), len(ident))}; "
+                  f"any stated interval (identifiable or not) containing it {_share(len(held), len(stated))}; value / lab E: median "
                   f"{np.median(ratios) if ratios else float('nan'):.3f}"
                   + (f" (range {np.min(ratios):.3f}-{np.max(ratios):.3f})" if ratios else ""))
 
