@@ -283,3 +283,22 @@ def test_probe_radius_from_top_presses_without_force_is_not_fitted_and_cannot_be
             why = blind["probe_radius"]
             assert why.startswith("cannot tell") and f"in the {missing} sequences" in why and "force" in why
     assert unobservable(tuple(k for k in kinds if k != "probe_radius"), top, top) == {}
+
+
+def test_a_signature_column_that_blew_up_on_validation_is_dropped_from_the_null():
+    """engine._trusted_columns: a column finite on both roles and of comparable size is kept
+    (validation ten times larger, or far smaller: palpation differs); one non-finite, or
+    1e19 on validation against 70 on train (a tangent that blew up, measured on field seed
+    51), is dropped."""
+    from core.diagnosis.engine import TANGENT_BLOWUP, _trusted_columns
+
+    rng = np.random.default_rng(5)
+    J_t = rng.normal(size=(200, 5))
+    J_v = rng.normal(size=(100, 5))
+    J_v[:, 1] *= 10.0
+    J_v[:, 2] *= 1e-6
+    J_v[:, 3] *= 1e19 / 70.0
+    J_v[7, 4] = np.nan
+    assert _trusted_columns(J_t, J_v).tolist() == [True, True, True, False, False]
+    J_v[:, 3] = J_t[:100, 3] * 0.5 * TANGENT_BLOWUP  # within the bound: kept
+    assert _trusted_columns(J_t, J_v)[3]
