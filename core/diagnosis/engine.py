@@ -143,11 +143,14 @@ def _channel_masks(ev: Evidence, role: str) -> dict[str, np.ndarray]:
 
 TANGENT_BLOWUP = 1e4
 """A signature column whose RMS per residual on validation exceeds this many times its RMS on
-train is a tangent that blew up, not physics: train and validation palpate the same phantom
-with the same probe. Measured: a compliant base's exact sensitivity on the validation
-sequence of field seed 51 (4 x 12 s, a side poke) came out 1.3e19 against 70 on train
-(the forward runs finite), and the null built from it put the kind's critical value at
-2.6e35, so it could neither be claimed nor bounded."""
+train is no local signature: train and validation palpate the same phantom with the same
+probe. Measured: a compliant base's exact sensitivity on the validation sequence of field
+seed 51 (4 x 12 s, a side poke) came out 1.3e19 against 70 on train (the forward runs
+finite), and the null built from it put the kind's critical value at 2.6e35, so it could
+neither be claimed nor bounded. The replay there is not smooth in the parameter: on that
+soft base (log10 k = 5, about 270 N/m in every direction under the whole phantom) the held
+side press makes the contact force chatter from frame to frame, and central differences of
+it grow as 1/h (a jump of ~1 N)."""
 
 
 def _trusted_columns(J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
