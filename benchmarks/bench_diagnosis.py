@@ -164,7 +164,7 @@ def applicable_min_size(det, hidden: dict) -> tuple[float | None, bool, str]:
     places = det.parameters.get("placements") if isinstance(det.parameters, dict) else None
     if not places or "center" not in hidden:
         return det.min_size, True, ""
-    stated_radius = min(float(p.get("radius", 0.010)) for p in places)
+    stated_radius = min(float(p["radius"]) for p in places)
     if float(hidden.get("radius", stated_radius)) < stated_radius - RADIUS_TOLERANCE:
         return None, False, ""
     c = np.asarray(hidden["center"], dtype=float)

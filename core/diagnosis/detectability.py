@@ -92,14 +92,13 @@ def _why(kind: str, cls, min_size: float | None, assumed: dict, palp: dict, answ
     said = ", ".join(f"{k} {_short(v)}" for k, v in assumed.items()) if assumed else ""
     channels = "the surface and the probe force" if palp.get("force") else "the surface (no force recorded)"
     if min_size is None:
+        # friction without slides and a probe radius from top presses without force never
+        # get here: they are not fitted (:func:`unobservable`)
         hint = {
-            "friction": "no press slid along the surface" if not palp.get("slides") else
-                        "the slides were too short or too light to show it",
+            "friction": "the slides were too short or too light to show it",
             "inclusion": "no press came near enough to it" if not palp.get("top_presses") else
                          "a stiffer spot under the presses did not change " + channels + " beyond the noise and the nuisances",
-            "probe_radius": "top presses alone, without force, cannot tell a larger sphere from a deeper press"
-                            if not palp.get("side_presses") and not palp.get("force") else
-                            "its wider dent stays within the noise and the nuisances",
+            "probe_radius": "its wider dent stays within the noise and the nuisances",
             "viscoelasticity": "the presses were too short or too slow to show relaxation",
             "time_offset": "the probe moved too little while the camera watched",
         }.get(kind, "its change of " + channels + " stays within the noise and the base model's nuisances")

@@ -3,8 +3,8 @@ effects yields no claim through the command line, and its stated ``min_size`` ag
 simulation (twice that size of gravity is claimed, 0.3 times it is not).
 
 The sessions are the `field` preset (law, mesh, E, Poisson's ratio, contact stiffness,
-damping and noise drawn per seed; random top and side palpation) with 6 s sequences to
-keep the suite's time; the seed is one no setting of the diagnosis was chosen on. Every
+damping and noise drawn per seed; random palpation, which in a 6 s sequence is one poke
+into the top) with 6 s sequences to keep the suite's time; the seed is one no setting of the diagnosis was chosen on. Every
 effect kind is a candidate. The benchmark (benchmarks/bench_diagnosis.py) runs all kinds
 and none on many seeds.
 """
