@@ -133,6 +133,25 @@ def test_a_real_effect_is_found_and_the_min_strength_matches_where_it_shows():
     assert hits[2.0] >= 34 and hits[0.3] <= 6, hits
 
 
+@pytest.mark.parametrize("left", [0.5, 0.1])
+def test_min_strength_where_bounded_nuisances_leave_a_share_of_the_signature(left):
+    """Where the nuisances absorb part of an effect and leave a share ``left`` of its
+    held-out change (noise-free T = left^2 s^2 |G|^2), data holding s times the signature
+    look like data holding left * s of the whole one, noise included: the minimum
+    detectable strength is the linear one divided by ``left`` (to the bisection's 0.1 %).
+    Scaling the noise-free part alone (the noise along the whole linear change) made it
+    larger (measured before the fix: 1.47x the right strength at 0.5, 6.1x at 0.1)."""
+    rng = np.random.default_rng(4)
+    nuis, r_t, r_v, J_t, J_v, b_t, b_v = _problem(rng, p=1)
+    test = HeldOutTest(nuis, nuis.project(r_t), nuis.held_out(r_v, r_t), b_t, b_v, 1.0, replicates=1999, seed=5)
+    crit = test.critical(test.null(J_t, J_v), 0.01)
+    linear = test.min_strength(J_t[:, 0], J_v[:, 0], crit, 100.0)
+    G = test.held_out_signature(J_t, J_v)[:, 0]
+    shared = test.min_strength(J_t[:, 0], J_v[:, 0], crit, 100.0, expected=lambda s: left**2 * s * s * float(G @ G))
+    assert linear is not None and shared is not None
+    assert shared == pytest.approx(linear / left, rel=3e-3)
+
+
 @pytest.mark.parametrize("offset_mm, absorbed", [(0.05, True), (0.8, False)])
 def test_bounded_nuisance_absorbs_a_small_offset_but_not_a_large_one(offset_mm, absorbed):
     """A registration coefficient bounded to 0.2 mm takes a 0.05 mm offset whole and
