@@ -63,7 +63,7 @@ from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
                                        reproduction)
-from core.diagnosis.nuisance import Nuisance
+from core.diagnosis.nuisance import Nuisance, model_form_drops
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
@@ -95,6 +95,17 @@ class _Round:
     r_train: np.ndarray  # its residual vectors
     r_validation: np.ndarray
     chi2: float          # its held-out validation chi2
+    _model_form: dict | None = None
+
+    def model_form(self, ev: Evidence) -> tuple[str, float]:
+        """(variant, T): the model-form variant at an end of its plausible range with the
+        largest held-out drop on this round's model (:func:`core.diagnosis.nuisance.model_form_drops`),
+        ("", 0.0) when none lowers it. Simulated once per round, when first asked."""
+        if self._model_form is None:
+            self._model_form = model_form_drops(ev, self.fixed, self.youngs_modulus, self.nuisance,
+                                                self.r_train, self.r_validation)
+        best = max(self._model_form.items(), key=lambda kv: kv[1], default=("", 0.0))
+        return best if best[1] > 0 else ("", 0.0)
 
     @classmethod
     def build(cls, ev: Evidence, fixed: list, E: float, cfg: DiagnosisConfig, seed: int) -> "_Round":
@@ -362,10 +373,12 @@ def diagnose_prepared(
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
         # a kind is claimed when Holm's procedure rejects its absence and it passes
-        # inference.claim_check (its fitted change reproduces, no channel made worse)
+        # inference.claim_check (its fitted change reproduces, no channel made worse, it
+        # explains more than the model-form gap's plausible range)
         significant = set()
         for k in holm(pvals, cfg.alpha):
-            verdict = claim_check(evid[k].statistic, evid[k].critical, evid[k].reproduction, evid[k].channels)
+            verdict = claim_check(evid[k].statistic, evid[k].critical, evid[k].reproduction, evid[k].channels,
+                                  rnd.model_form(ev))
             refused.pop(k, None)
             small.pop(k, None)
             if verdict is None:

@@ -226,6 +226,10 @@ def test_claim_check_keeps_a_reproduced_change_and_refuses_the_rest():
     bad = dict(ok, force={"delta_chi2": -400.0, "t": 2.3, "critical": 2.0, "worse": True})
     reason, why = claim_check(900.0, 300.0, {"expected": 1000.0}, bad)
     assert reason == "channel_worse" and "force" in why and "top" in why
+    # a model-form variant inside its plausible range that explains as much: refused, else kept
+    reason, why = claim_check(900.0, 300.0, {"expected": 1000.0}, ok, ("rayleigh_stiffness 0.3", 950.0))
+    assert reason == "model_form" and "rayleigh_stiffness 0.3" in why and "950" in why
+    assert claim_check(900.0, 300.0, {"expected": 1000.0}, ok, ("rayleigh_stiffness 0.3", 850.0)) is None
 
 
 def test_reproduction_matches_the_drop_decomposition():
@@ -321,3 +325,25 @@ def test_a_signature_column_that_blew_up_on_validation_is_dropped_from_the_null(
     assert _trusted_columns(J_t, J_v).tolist() == [True, True, True, False, False]
     J_v[:, 3] = J_t[:100, 3] * 0.5 * TANGENT_BLOWUP  # within the bound: kept
     assert _trusted_columns(J_t, J_v)[3]
+
+
+def test_model_form_ends_are_the_nuisance_bounds_in_physical_units():
+    """The model-form variants a claim must beat sit at the ends of the same plausible
+    ranges the bounded nuisances allow (one table, core.diagnosis.nuisance.BOUNDS)."""
+    from types import SimpleNamespace
+
+    from core.diagnosis.config import NUISANCES
+    from core.diagnosis.nuisance import model_form_ends
+
+    ev = SimpleNamespace(cfg=SimpleNamespace(nuisances=NUISANCES, poisson_ratio=0.44))
+    ends = dict(model_form_ends(ev))
+    damping = sorted(v["simulation"][0][1] for k, v in ends.items() if k.startswith("rayleigh_stiffness"))
+    assert damping == pytest.approx([0.05, 0.3])
+    nu = sorted(v["poisson_ratio"] for k, v in ends.items() if k.startswith("Poisson"))
+    assert nu == pytest.approx([0.38, 0.485])
+    contact = sorted(v["simulation"][0][1] for k, v in ends.items() if k.startswith("contact"))
+    assert contact == pytest.approx([2e4, 3.8e5])
+    assert ends["law stable_neo_hookean"] == {"law": "stable_neo_hookean"}
+    # a nuisance left out of the configuration is no bar either
+    ev.cfg.nuisances = tuple(n for n in NUISANCES if n != "damping")
+    assert not any(k.startswith("rayleigh") for k, _ in model_form_ends(ev))
