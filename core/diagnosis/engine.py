@@ -27,6 +27,10 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    sessions (before the rule): the spurious claims' fitted changes were worth 0.13-0.78
    of their critical values (six of seven; a friction claim on one no-effect session,
    3.4 times, is kept), the true gravity and compliant-base claims' 1.30 and 1.46 times.
+   A third check: the drop must exceed what the base model itself gains at the ends of its
+   model-form gap's plausible range (damping, Poisson's ratio, contact, law;
+   :func:`core.diagnosis.nuisance.model_form_drops`), which the linear, bounded nuisance
+   directions can miss.
    The significant kind with the largest drop is claimed and the others are refitted on
    top of it (greedy forward selection). When a rival explains nearly as much with a
    similar change and neither adds significant held-out evidence to the other, the two
@@ -243,6 +247,14 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
     blocks = rnd.test.blocks_validation
     worse = channel_worsening(e_v, h, channels, blocks, cfg.consistency_alpha, ev.sigma2) if cfg.consistency_alpha > 0 else {}
     return _Evidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
+
+
+def _model_form_json(rnd: _Round | None, ev: Evidence) -> dict | None:
+    """diagnosis.json ``model_form``: the last round's drops and bar, when they were simulated."""
+    if rnd is None or rnd._model_form is None:
+        return None
+    variant, bar = rnd.model_form(ev)
+    return {"drops": {k: float(v) for k, v in rnd._model_form.items()}, "variant": variant or None, "bar": float(bar)}
 
 
 def _floor_mesh(prepared: PreparedSession, cfg: DiagnosisConfig, ev: Evidence):
@@ -553,5 +565,5 @@ def diagnose_prepared(
         extended_fields={r.sequence: r for r in ext_train + ext_val + ext_runs},
         layout=layout, timings=timings, simulations=ev.simulations,
         force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=tuple(dict.fromkeys(last.nuisance.names)) if last else (),
-        notes=tuple(notes),
+        notes=tuple(notes), model_form=_model_form_json(last, ev),
     )

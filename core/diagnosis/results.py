@@ -146,6 +146,9 @@ class Diagnosis:
     """The nuisance directions the base model carried (``core.diagnosis.nuisance``)."""
     notes: tuple = ()
     """What the diagnosis had to change from its configuration, and why (diagnosis.json ``notes``)."""
+    model_form: dict | None = None
+    """The last round's model-form bar: {"drops": {variant: held-out chi2 drop}, "variant",
+    "bar"} (:func:`core.diagnosis.nuisance.model_form_drops`); a claim had to exceed "bar"."""
 
     def answers(self) -> dict:
         """{kind: one of :data:`ANSWERS`} for every kind with a detectability statement."""
@@ -193,12 +196,14 @@ class Diagnosis:
                       + (" and the probe force" if self.force else "")
                       + ") beside the base model's nuisances (" + ", ".join(self.nuisances)
                       + "); a kind is claimed when its held-out chi-square drop passes Holm's procedure over "
-                        "its null distribution from a wild block bootstrap of the session's own residuals",
+                        "its null distribution from a wild block bootstrap of the session's own residuals and "
+                        "exceeds the drop of the base model at the ends of its model-form range (model_form)",
             "claims": {"false_claim_rate": cfg.alpha, "meaning": "per selection round, family-wise over the candidate "
                        "kinds: on a session without any effect, the chance that anything is claimed",
                        "null_replicates": cfg.n_null, "block_s": cfg.block},
             "simulations": self.simulations,
             "timings_s": self.timings,
             "notes": list(self.notes),
+            **({"model_form": self.model_form} if self.model_form is not None else {}),
             **({"learned_correction": self.learned_correction} if self.learned_correction else {}),
         }
