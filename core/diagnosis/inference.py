@@ -445,9 +445,10 @@ class HeldOutTest:
         noise along the change the effect leaves on held-out data. That change is ``s G``
         for the linear projection; where bounded nuisances absorb part of it, what is left
         has the norm ``sqrt(expected(s) sigma^2)``, so the noise along it is scaled by
-        ``k(s) = sqrt(expected(s) / free(s))`` (without the scale, noise along the whole
-        linear change outweighed a kind the nuisances mostly absorb: a 5 mm robot offset
-        whose expected T was 7.5x the critical value read "cannot tell"). With the default
+        ``k(s) = sqrt(expected(s) / free(s))`` (without the scale, the noise along the
+        whole linear change made the minimum strength 1.47x too large where half of the
+        change survives the nuisances and 6.1x where a tenth does; ``k`` exceeds 1 where
+        the bounds leave more than the unbounded projection would). With the default
         ``expected`` this is exactly the quantile of :meth:`statistic`."""
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))) or s_max <= 0:
             return None
