@@ -28,7 +28,8 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    of their critical values (six of seven; a friction claim on one no-effect session,
    3.4 times, is kept), the true gravity and compliant-base claims' 1.30 and 1.46 times.
    A third check: the drop must exceed what the base model itself gains at the ends of its
-   model-form gap's plausible range (damping, Poisson's ratio, contact, law;
+   model-form gap's plausible range, one property at a time or all at once (damping,
+   Poisson's ratio, contact, law;
    :func:`core.diagnosis.nuisance.model_form_drops`), which the linear, bounded nuisance
    directions can miss.
    The significant kind with the largest drop is claimed and the others are refitted on

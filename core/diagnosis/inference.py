@@ -273,9 +273,9 @@ def claim_check(statistic: float, critical: float, reproduced: dict, channels: d
     2. **No channel made worse** (:func:`channel_worsening`): a gain in one channel bought
        with a significant loss in another is the gap, not the kind.
     3. **More than the model-form gap's plausible range explains**: ``T`` above the
-       held-out drop of the best model-form variant at an end of its range
-       (:func:`core.diagnosis.nuisance.model_form_drops`; damping, Poisson's ratio,
-       contact stiffness, material law). Measured on a no-effect field session without
+       held-out drop of the best model-form variant at an end of its range, alone or at a
+       corner of the box (:func:`core.diagnosis.nuisance.model_form_drops`; damping,
+       Poisson's ratio, contact stiffness, material law). Measured on a no-effect field session without
        force whose phantom was damped at 0.157 s (the replay's 0.1 s): a Maxwell arm of
        0.05 s passed the first two checks at T 307 (critical 158), while the replay at
        0.3 s damping lowered the held-out chi-square by 486 and at the phantom's own 0.157 s

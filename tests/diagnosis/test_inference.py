@@ -329,14 +329,23 @@ def test_a_signature_column_that_blew_up_on_validation_is_dropped_from_the_null(
 
 def test_model_form_ends_are_the_nuisance_bounds_in_physical_units():
     """The model-form variants a claim must beat sit at the ends of the same plausible
-    ranges the bounded nuisances allow (one table, core.diagnosis.nuisance.BOUNDS)."""
+    ranges the bounded nuisances allow (one table, core.diagnosis.nuisance.BOUNDS), alone
+    and at every corner of that box."""
     from types import SimpleNamespace
 
     from core.diagnosis.config import NUISANCES
     from core.diagnosis.nuisance import model_form_ends
 
     ev = SimpleNamespace(cfg=SimpleNamespace(nuisances=NUISANCES, poisson_ratio=0.44))
-    ends = dict(model_form_ends(ev))
+    every = dict(model_form_ends(ev))
+    ends = {k: v for k, v in every.items() if ", " not in k}  # each variant alone
+    assert len(ends) == 7
+    # and every corner of the box: law either, damping, nu and contact at one end each
+    corners = [v for k, v in every.items() if ", " in k]
+    assert len(corners) == 16 and all(len(v["simulation"]) == 2 and "poisson_ratio" in v for v in corners)
+    assert {(v.get("law"), round(v["poisson_ratio"], 6)) + tuple(round(x, 6) for _, x in v["simulation"])
+            for v in corners} == {(law, nu, b, k) for law in (None, "stable_neo_hookean") for nu in (0.38, 0.485)
+                                  for b in (0.05, 0.3) for k in (3.8e5, 2e4)}
     damping = sorted(v["simulation"][0][1] for k, v in ends.items() if k.startswith("rayleigh_stiffness"))
     assert damping == pytest.approx([0.05, 0.3])
     nu = sorted(v["poisson_ratio"] for k, v in ends.items() if k.startswith("Poisson"))
