@@ -190,7 +190,11 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
               f"the kinds of a round are tested together by Holm's procedure: on a session without any effect, "
               f"the chance that anything is claimed is at most {100 * diag.config.alpha:g} %. A kind that passes but "
               "makes a channel of the held-out data (top face, side faces, force) significantly worse is not "
-              "claimed: its gain in one channel is the model-form gap, paid for in another.", "",
+              "claimed: its gain in one channel is the model-form gap, paid for in another. Nor is a kind whose "
+              "drop does not exceed what the base model itself gains at the ends of its model-form range "
+              "(damping, Poisson's ratio, contact stiffness, material law, alone and together)"
+              + (f": here {diag.model_form['bar']:.0f} (chi2), from {diag.model_form['variant']}."
+                 if diag.model_form and diag.model_form.get("variant") else "."), "",
               "| round | candidate | chi2 drop: surface | chi2 drop: force | critical | p-value | confidence | claimed |",
               "|---|---|---|---|---|---|---|---|"]
     for c in diag.candidates:

@@ -79,6 +79,8 @@ def test_no_effect_on_other_physics_gives_no_claim_through_the_command_line(no_e
     assert data["youngs_modulus"]["identifiable"] is False  # displacement only, no force, no gravity
     report = (out / "report.md").read_text()
     assert "No effect found" in report and "false-claim rate" in report
+    if data["model_form"]["variant"]:  # the report names the bar a claim had to exceed
+        assert f"{data['model_form']['bar']:.0f} (chi2), from {data['model_form']['variant']}" in report
     assert (out / "residual_maps.png").stat().st_size > 10_000
 
 
