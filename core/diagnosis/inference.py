@@ -409,27 +409,25 @@ class HeldOutTest:
         :func:`tail_quantile`."""
         return tail_quantile(null, level)
 
-    def _strength_replicates(self, D_t: np.ndarray, D_v: np.ndarray):
-        """``(at, GG)``: ``at(s)`` gives the (R,) replicates of ``T`` for data holding ``s``
-        times the signature ``D`` ((L_t,), (L_v,)), fitted along ``D`` itself; ``GG`` is
-        ``|G|^2`` of its held-out signature. The bootstrap's pieces do not depend on ``s``
-        and are computed once."""
+    def _strength_pieces(self, D_t: np.ndarray, D_v: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(chance, cross, GG)`` of a signature ``D`` ((L_t,), (L_v,)) fitted along itself:
+        data holding ``s`` times it give the (R,) replicates ``T(s) = chance + s cross + s^2
+        GG / sigma^2`` (``chance`` the noise's own fit along D, ``cross`` twice the noise
+        along the held-out signature G per unit strength, ``GG = |G|^2``). None of them
+        depends on ``s``, so they are computed once."""
         D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
         D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
         theta0, g0, G, _, _ = self._replicates(D_t, D_v)
         GG = float((G.T @ G)[0, 0])
-
-        def at(s: float) -> np.ndarray:
-            theta = theta0[:, 0] + s  # the fit along D recovers s plus the noise's part
-            g = g0[:, 0] + s * GG  # r0 gains s G: g + s G'G
-            return (2.0 * g * theta - GG * theta**2) / self.sigma2
-
-        return at, GG
+        theta0, g0 = theta0[:, 0], g0[:, 0]
+        return (2.0 * g0 * theta0 - GG * theta0**2) / self.sigma2, 2.0 * g0 / self.sigma2, GG
 
     def statistic(self, D_t: np.ndarray, D_v: np.ndarray, strength: float) -> np.ndarray:
         """(R,) replicates of ``T`` for data holding ``strength`` times the signature
         ``D`` ((L_t,), (L_v,)), fitted along ``D`` itself."""
-        return self._strength_replicates(D_t, D_v)[0](float(strength))
+        chance, cross, GG = self._strength_pieces(D_t, D_v)
+        s = float(strength)
+        return chance + s * cross + s * s * GG / self.sigma2
 
     def min_strength(self, D_t: np.ndarray, D_v: np.ndarray, critical: float, s_max: float,
                      power: float = 0.8, expected: Callable[[float], float] | None = None) -> float | None:
@@ -452,15 +450,9 @@ class HeldOutTest:
         ``expected`` this is exactly the quantile of :meth:`statistic`."""
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))) or s_max <= 0:
             return None
-        D_t = np.asarray(D_t, dtype=np.float64).reshape(-1, 1)
-        D_v = np.asarray(D_v, dtype=np.float64).reshape(-1, 1)
-        theta0, g0, G, _, _ = self._replicates(D_t, D_v)
-        GG = float((G.T @ G)[0, 0])
+        chance, cross, GG = self._strength_pieces(D_t, D_v)
         if not GG > 0:
             return None  # the signature does not change the held-out data at any strength
-        theta0, g0 = theta0[:, 0], g0[:, 0]
-        chance = (2.0 * g0 * theta0 - GG * theta0**2) / self.sigma2  # (R,)
-        cross = 2.0 * g0 / self.sigma2  # (R,) per unit of the held-out change's strength
 
         def free(s):
             return s * s * GG / self.sigma2

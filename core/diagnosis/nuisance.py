@@ -42,6 +42,7 @@ E); the mesh direction, which needs fine-grid runs, is taken at the base model o
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -269,8 +270,6 @@ def model_form_ends(ev: Evidence) -> list[tuple[str, dict]]:
     them at once: on a no-effect field session damped at 0.233 s (Yeoh law, nu 0.474) no
     single end reached a spurious clock offset's held-out drop (429 against 542), the
     corner of the neo-Hookean law, 0.3 s, 0.485 and the soft contact did (1264)."""
-    import itertools
-
     per = _variant_ends(ev)
     out = [end for ends in per.values() for end in ends]
     if len(per) > 1:
