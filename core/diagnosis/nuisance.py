@@ -50,7 +50,7 @@ import numpy as np
 
 from core.diagnosis.evidence import Evidence, Spec
 
-__all__ = ["Nuisance", "nuisance_columns", "model_form_ends", "model_form_drops", "VARIANTS", "BOUNDS"]
+__all__ = ["Nuisance", "nuisance_columns", "model_form_ends", "model_form_worlds", "model_form_drops", "VARIANTS", "BOUNDS"]
 
 VARIANTS: dict[str, dict] = {
     "law": {"law": "stable_neo_hookean"},
@@ -259,6 +259,15 @@ def _variant_ends(ev: Evidence) -> dict[str, list[tuple[str, dict]]]:
             ends = [base + b * (float(value) - base) for b in (lo, hi)]
             out[name] = [(f"{field_name} {v:.3g}", {"simulation": ((field_name, v),)}) for v in ends]
     return out
+
+
+def model_form_worlds(ev: Evidence) -> list[tuple[str, dict]]:
+    """Each model-form variant of :data:`VARIANTS` alone at either end of its plausible
+    range, as ``(label, Spec fields)`` (Rayleigh stiffness damping 0.05 and 0.3 s, Poisson's
+    ratio 0.38 and 0.485, the contact 10x softer and 1.9x stiffer, the neo-Hookean law; 7
+    with the default nuisances): the phantoms a kind's detectability must hold for
+    (:mod:`core.diagnosis.detectability`)."""
+    return [end for ends in _variant_ends(ev).values() for end in ends]
 
 
 def model_form_ends(ev: Evidence) -> list[tuple[str, dict]]:
