@@ -78,7 +78,13 @@ def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
     lo, hi = fit.interval
     assert lo <= truth <= hi and lo <= fit.youngs_modulus <= hi and hi / lo < 1.5
     blo, bhi = fit.bootstrap_interval
-    assert lo <= blo and bhi <= hi  # the calibration term only widens
+    assert lo <= blo and bhi <= hi  # the calibration term and the model form only widen
+    # without force the sag sets E, and the sag depends on the law and nu: the interval
+    # holds E refitted to the surface under both laws at either end of nu (on the fine grid's scale)
+    mf, scale = fit.model_form, fit.refined_value / fit.coarse_value
+    assert mf["channel"] == "surface" and len(mf["variants"]) == 4
+    assert lo <= mf["low"] * scale * (1 + 1e-9) and mf["high"] * scale <= hi * (1 + 1e-9)
+    assert mf["high"] / mf["low"] > 1.05  # the variants do move it
 
 
 def test_only_force_gravity_or_a_fixed_foundation_set_a_scale_for_E():
