@@ -125,11 +125,11 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
     for _ in range(2):
         eff = cls.sized(size, ctx, **assumed).to_dict()
         st = cls.strength(size)
+        if st == 0:
+            return found, label
         specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in worlds]
                  + [Spec(fixed + (eff,), E, **f) for _, f in worlds])
         vec = {role: [ev.vector(run) for run in ev.runs(specs, role)] for role in ("train", "validation")}
-        if st == 0:
-            return found, label
         D_t, D_v = (vec["train"][0] - rnd.r_train) / st, (vec["validation"][0] - rnd.r_validation) / st
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))):
             return found, label

@@ -169,16 +169,19 @@ class FitResult:
         }
 
 
-SURFACE_VARIANTS: tuple[tuple[str, float], ...] = tuple(
-    (law, nu) for law in ("corotational", "stable_neo_hookean") for nu in (0.42, 0.48))
-"""(law, Poisson's ratio) of the surface model-form refits of E without force (the ends of
-the plausible nu range of :data:`core.identification.model_form.VARIANTS`, both laws)."""
+def _surface_variants():
+    """The variants of :data:`core.identification.model_form.VARIANTS` a trial can express
+    (both laws at the ends of the plausible nu range; the Yeoh stiffening is not a trial
+    field), as :class:`~core.identification.model_form.ModelFormVariant`."""
+    from core.identification.model_form import VARIANTS
+
+    return [v for v in VARIANTS if v.stiffening == 0.0]
 
 
 def _surface_model_form(prepared: PreparedSession, names, base: Trial, executor: Executor, d0: float,
                         progress, metric: str, E_star: float) -> dict:
     """E refitted to the train surface (the fit's own objective, no force) under each of
-    :data:`SURFACE_VARIANTS`, within 0.3 decades of ``E_star``.
+    :func:`_surface_variants` on the base's grid, within 0.3 decades of ``E_star``.
 
     Without force, E is set by a body force's sag or a foundation (~ rho g H^2 / E), which
     depends on the law and on Poisson's ratio as well: measured on a field session (seed 52,
@@ -190,14 +193,14 @@ def _surface_model_form(prepared: PreparedSession, names, base: Trial, executor:
         None), "channel": "surface", "evaluations": replays}``.
     """
     out, evaluations = [], 0
-    for law, nu in SURFACE_VARIANTS:
-        variant = replace(base, law=law, poisson_ratio=nu)
-        obj = _Objective(prepared, names, variant, executor, False, d0, None, progress, metric)
+    for v in _surface_variants():
+        obj = _Objective(prepared, names, replace(base, law=v.law, poisson_ratio=v.poisson_ratio), executor, False,
+                         d0, None, progress, metric)
         r = minimize_scalar(obj, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded",
                             options={"xatol": 0.004})
         evaluations += obj.evaluations
         E_v = float(10.0**r.x) if np.isfinite(r.fun) else None
-        out.append({"model": f"{law}, nu {nu:g}, {'x'.join(str(v) for v in base.grid)}", "youngs_modulus": E_v})
+        out.append({"model": replace(v, grid=tuple(base.grid)).label, "youngs_modulus": E_v})
     vals = [o["youngs_modulus"] for o in out if o["youngs_modulus"] is not None]
     return {"variants": out, "low": min(vals) if vals else None, "high": max(vals) if vals else None,
             "channel": "surface", "evaluations": evaluations}
