@@ -104,6 +104,8 @@ def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
     assert plan["record_force"] is True and any("force" in line for line in plan["description"])
     mu = plan["predicted_min_size"]["friction"]
     assert mu is not None and mu < EFFECT_KINDS["friction"].max_size
+    # held to the model-form worlds: any world that set a size is named
+    assert set(plan["predicted_model_form_world"]) <= set(plan["predicted_min_size"])
     assert plan["duration_s"] <= 12.0 + 1e-9
     assert "slide" in (out / "plan.md").read_text()
     assert (out / "kinematics.csv").read_text().splitlines()[0].startswith("t,")
@@ -112,3 +114,61 @@ def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
     assert main(["generate", "--out", str(rec), "--plan", str(out), "--force",
                  "--effects", '[{"kind": "friction", "mu": 0.5}]']) == 0
     assert (rec / "sequences").is_dir() and "fx" in next((rec / "sequences").glob("*/kinematics.csv")).read_text().splitlines()[0]
+
+
+def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
+    """The planner's q is the least of the replay's and every model-form world's: a world
+    whose change of the data is half the replay's signature needs twice the strength (q/4),
+    one whose change the fit along the signature cannot take up leaves nothing (q 0), and
+    the nuisance directions are projected out of the worlds' changes too."""
+    from core.diagnosis.config import DiagnosisConfig
+    from core.diagnosis.nuisance import model_form_worlds
+    from core.diagnosis.planner import _world_q
+
+    rng = np.random.default_rng(3)
+    L = 40
+    N = rng.normal(size=(L, 2))  # two nuisance directions
+
+    def project(X):
+        return X - N @ np.linalg.lstsq(N, X, rcond=None)[0]
+
+    D_raw = rng.normal(size=L)
+    D = project(D_raw)
+    sigma2, strength = 0.5, 2.0
+    q = float(D @ D) / sigma2
+    effect = {"kind": "friction", "mu": 0.3}
+
+    class FakeEvidence:
+        cfg = DiagnosisConfig()
+
+        def __init__(self, change):
+            self.change = change  # {world label: its change of the data per unit strength}
+            self.labels = {repr(f): name for name, f in model_form_worlds(self)}
+
+        def runs(self, specs, role):
+            assert role == "validation"
+            return specs
+
+        def vector(self, spec):
+            fields = {k: getattr(spec, k) for k in ("law", "poisson_ratio", "simulation")
+                      if getattr(spec, k) not in (None, ())}
+            name = self.labels[repr(fields)]
+            base = np.full(L, 0.1)
+            return base + (strength * self.change[name] if effect in spec.effects else 0.0)
+
+    names = [name for name, _ in model_form_worlds(FakeEvidence({}))]
+    assert len(names) == 7
+    # every world makes the replay's own change: q unchanged, no world named
+    same = FakeEvidence({n: D_raw for n in names})
+    assert _world_q(same, (), 5000.0, effect, D, strength, project, sigma2, q) == (pytest.approx(q, rel=1e-9), "")
+    # one world makes half of it, plus a nuisance-shaped part: q / 4, that world named
+    half = dict(same.change)
+    half[names[2]] = 0.5 * D_raw + N @ np.array([3.0, -1.0])
+    got, world = _world_q(FakeEvidence(half), (), 5000.0, effect, D, strength, project, sigma2, q)
+    assert got == pytest.approx(q / 4, rel=1e-9) and world == names[2]
+    # a world whose change is orthogonal to the signature (after the nuisances): nothing shows
+    ortho = dict(same.change)
+    u = project(rng.normal(size=L))
+    ortho[names[5]] = u - D * (u @ D) / (D @ D)
+    got, world = _world_q(FakeEvidence(ortho), (), 5000.0, effect, D, strength, project, sigma2, q)
+    assert got == pytest.approx(0.0, abs=1e-9 * q) and world == names[5]
