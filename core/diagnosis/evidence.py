@@ -197,7 +197,7 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
     n = np.array([c.shape[0] for c in seq.clouds], dtype=np.int64)
     sums = None
     if item.paper_error:
-        means, _ = frame_errors(sim.positions, shape, seq.clouds)
+        means, _ = frame_errors(sim.positions, shape, seq.clouds, distances=False)
         sums = means * n  # NaN where the frame diverged
     run = FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
                    np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects))

@@ -139,36 +139,61 @@ def _clean_sequence(session: Session, name: str, cal: Calibration, config: Prepa
         progress(len(chunk))
     counts = np.array([c.shape[0] for c in clouds], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-    points = np.concatenate(clouds).astype(np.float32) if clouds else np.zeros((0, 3), np.float32)
+    points = np.concatenate(clouds).astype(np.float32, copy=False) if clouds else np.zeros((0, 3), np.float32)
+    del clouds
     force = None if kin.force is None else kin.force @ Tpr[:3, :3].T
     return points, offsets, path, force
 
 
-def _write_entry(folder: Path, session: Session, cal: Calibration, seqs: dict, reference) -> None:
-    tmp = folder.parent / f"{folder.name}.tmp-{os.getpid()}-{time.time_ns()}"
-    tmp.mkdir(parents=True)
-    try:
-        meta = {"version": CACHE_VERSION, "session": str(session.path), "calibration": cal.to_json(),
-                "sequences": {}}
-        for i, (name, (role, frame_times, points, offsets, path, force)) in enumerate(seqs.items()):
-            stem = f"s{i:03d}"
-            np.save(tmp / f"{stem}.points.npy", points)
-            np.save(tmp / f"{stem}.offsets.npy", offsets)
-            arrays = {"frame_times": frame_times, "probe_t": path.t, "probe_centres": path.centres}
-            if force is not None:
-                arrays["force"] = force
-            np.savez(tmp / f"{stem}.arrays.npz", **arrays)
-            meta["sequences"][name] = {"role": role, "stem": stem}
+class _EntryWriter:
+    """A cache entry written sequence by sequence into a temporary folder and renamed into
+    place by :meth:`finish`, so a paper-size preparation never holds more than one
+    sequence's cleaned points (a crashed preparation leaves no half-written entry).
+
+    Raises:
+        OSError: the folder cannot be written (a read-only or full cache).
+    """
+
+    def __init__(self, folder: Path, session: Session, cal: Calibration):
+        self.folder = folder
+        self.tmp = folder.parent / f"{folder.name}.tmp-{os.getpid()}-{time.time_ns()}"
+        self.tmp.mkdir(parents=True)
+        self.meta = {"version": CACHE_VERSION, "session": str(session.path), "calibration": cal.to_json(),
+                     "sequences": {}}
+
+    def add(self, name: str, role: str, frame_times, points, offsets, path: ProbePath, force) -> None:
+        stem = f"s{len(self.meta['sequences']):03d}"
+        np.save(self.tmp / f"{stem}.points.npy", points)
+        np.save(self.tmp / f"{stem}.offsets.npy", offsets)
+        arrays = {"frame_times": frame_times, "probe_t": path.t, "probe_centres": path.centres}
+        if force is not None:
+            arrays["force"] = force
+        np.savez(self.tmp / f"{stem}.arrays.npz", **arrays)
+        self.meta["sequences"][name] = {"role": role, "stem": stem}
+
+    def read_back(self) -> dict:
+        """{name: (role, frame_times, points, offsets, path, force)} of the sequences
+        written so far, in memory (the fallback when the cache cannot be finished)."""
+        out = {}
+        for name, info in self.meta["sequences"].items():
+            stem = info["stem"]
+            with np.load(self.tmp / f"{stem}.arrays.npz") as z:
+                force = z["force"] if "force" in z.files else None
+                out[name] = (info["role"], z["frame_times"], np.load(self.tmp / f"{stem}.points.npy"),
+                             np.load(self.tmp / f"{stem}.offsets.npy"), ProbePath(z["probe_t"], z["probe_centres"]), force)
+        return out
+
+    def finish(self, reference) -> None:
         if reference is not None:
-            np.save(tmp / "reference.npy", reference)
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+            np.save(self.tmp / "reference.npy", reference)
+        (self.tmp / "meta.json").write_text(json.dumps(self.meta, indent=1))
         try:
-            tmp.rename(folder)
+            self.tmp.rename(self.folder)
         except OSError:  # another process wrote the same entry meanwhile
-            shutil.rmtree(tmp, ignore_errors=True)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+            self.abort()
+
+    def abort(self) -> None:
+        shutil.rmtree(self.tmp, ignore_errors=True)
 
 
 def _read_entry(folder: Path) -> tuple[Calibration, dict, np.ndarray | None]:
@@ -272,6 +297,28 @@ def prepare_session(
         if callback:
             callback(done[0] / max(total, 1), f"cleaning ({done[0]}/{total} frames)")
 
+    writer = None
+    if folder is not None:
+        try:
+            folder.parent.mkdir(parents=True, exist_ok=True)
+            writer = _EntryWriter(folder, session, cal)
+        except OSError:  # a read-only or full cache: keep the preparation in memory
+            key = ""
+    kept: dict = {}  # sequences held in memory: only when they cannot be written
+
+    def keep(n: str, entry: tuple) -> None:
+        """Write a cleaned sequence to the cache entry (and let it go), or keep it in memory."""
+        nonlocal writer, key
+        if writer is not None:
+            try:
+                writer.add(n, *entry)
+                return
+            except OSError:
+                kept.update(writer.read_back())
+                writer.abort()
+                writer, key = None, ""
+        kept[n] = entry
+
     pool = None
     if workers and total >= PARALLEL_MIN_FRAMES:
         import multiprocessing
@@ -279,7 +326,6 @@ def prepare_session(
         # "spawn": the parent holds Open3D/TBB threads, which fork() does not copy safely
         pool = ProcessPoolExecutor(max_workers=int(workers), mp_context=multiprocessing.get_context("spawn"))
     try:
-        cleaned = {}
         for n in names:
             try:
                 points, offsets, pth, force = _clean_sequence(session, n, cal, cfg, pool, progress)
@@ -289,7 +335,12 @@ def prepare_session(
                 pool.shutdown(wait=False, cancel_futures=True)
                 pool = None
                 points, offsets, pth, force = _clean_sequence(session, n, cal, cfg, None, progress)
-            cleaned[n] = (session.sequences[n].role, np.asarray(session.sequences[n].frames.t), points, offsets, pth, force)
+            keep(n, (session.sequences[n].role, np.asarray(session.sequences[n].frames.t), points, offsets, pth, force))
+            del points, offsets
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
     finally:
         if pool is not None:
             pool.shutdown(wait=True)
@@ -298,13 +349,15 @@ def prepare_session(
     if reference is not None:
         reference_phantom = clean_cloud(reference, cal.T_phantom_camera, size, voxel_size=cfg.voxel_size).points_phantom
     timings["clean"] = time.perf_counter() - t0
-    if folder is not None:
+    if writer is not None:
         try:
-            folder.parent.mkdir(parents=True, exist_ok=True)
-            _write_entry(folder, session, cal, cleaned, reference_phantom)
+            writer.finish(reference_phantom)
+        except OSError:  # a full cache: keep the preparation in memory
+            kept.update(writer.read_back())
+            writer.abort()
+            key = ""
+        else:
             _, seqs, reference_phantom = _read_entry(folder)
             return result(cal, seqs, reference_phantom, key)
-        except OSError:  # a read-only or full cache: keep the preparation in memory
-            key = ""
-    seqs = {n: (role, ft, Clouds(points, offsets), pth, force) for n, (role, ft, points, offsets, pth, force) in cleaned.items()}
+    seqs = {n: (role, ft, Clouds(points, offsets), pth, force) for n, (role, ft, points, offsets, pth, force) in kept.items()}
     return result(cal, seqs, reference_phantom, key)

@@ -166,27 +166,32 @@ def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3, *,
     return float(point_to_mesh_distances(np.concatenate(points), surface).mean())
 
 
-def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], factor: int = 3):
+def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], factor: int = 3, *,
+                 distances: bool = True):
     """Per-frame mean and per-point distances from clouds to the super-sampled mesh.
 
     Args:
         positions: (F, N, 3) node positions, m. grid: (nx, ny, nz), or the
             :class:`TetMesh` of any phantom (:func:`core.simulation.metrics.surface_operator`).
         clouds: F arrays (M_f, 3) of measured points, m, same frame.
+        distances: keep the per-point distances (False: only the per-frame means, so a
+            paper-size sequence of 3600 frames does not hold ~1 GB of float64 distances).
 
     Returns:
-        (frame_mean (F,) m, distances: list of (M_f,) arrays in m). Frames with
-        non-finite positions get NaN.
+        (frame_mean (F,) m, distances: list of (M_f,) arrays in m, or None without
+        ``distances``). Frames with non-finite positions get NaN.
     """
     means = np.full(len(clouds), np.nan)
-    dists = []
+    dists = [] if distances else None
     for f, pts in enumerate(clouds):
         if not np.all(np.isfinite(positions[f])) or pts.shape[0] == 0:
-            dists.append(np.full(pts.shape[0], np.nan))
+            if distances:
+                dists.append(np.full(pts.shape[0], np.nan))
             continue
         d = point_to_mesh_distances(pts, supersampled_surface(positions[f], grid, factor))
         means[f] = d.mean()
-        dists.append(d)
+        if distances:
+            dists.append(d)
     return means, dists
 
 
@@ -203,9 +208,13 @@ def replay_sequence(
     if model is None:
         model = build_replay_model(prepared, config)
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times, callback=callback)
-    errs, dists = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample)
-    if sim.ok:
-        mean = float(np.concatenate(dists).mean()) if dists else float("nan")
+    errs, _ = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample, distances=False)
+    # the mean over every point of the sequence, from the frames' means and point counts
+    counts = np.diff(np.asarray(seq.clouds.offsets)) if hasattr(seq.clouds, "offsets") else \
+        np.array([c.shape[0] for c in seq.clouds])
+    seen = counts > 0
+    if sim.ok and seen.any():
+        mean = float(np.dot(errs[seen], counts[seen]) / counts[seen].sum())
     else:
         mean = float("nan")
     return SequenceReplay(
