@@ -282,7 +282,7 @@ def main(argv=None) -> int:
     ap.add_argument("--speed", action=argparse.BooleanOptionalAction, default=True,
                     help="run the training and inference timings (default yes)")
     ap.add_argument("--table3", choices=("demo", "paper", "small", "none"), default="demo",
-                    help="preset of the Table 3 session (paper: about an hour to generate; default demo)")
+                    help="preset of the Table 3 session (paper: about 16 minutes and 12 GB to generate; default demo)")
     ap.add_argument("--session", default=None, help="use this session folder instead of generating one")
     ap.add_argument("--models", nargs="+", choices=("2d", "3d"), default=["2d", "3d"])
     ap.add_argument("--table3-widths", type=int, nargs=3, default=(64, 128, 256))
