@@ -302,13 +302,14 @@ def plan_experiment(
                 q = float(D @ D) / sigma2
                 pick = (best is None or (q > best[0] if cls.assume == "most_detectable" else q < best[0]))
                 if pick:
-                    best = (q, a, "", eff, D, st)
+                    best = (q, a, eff, D, st)
             if best is None:
                 out[k] = (0.0, {}, "")
                 continue
-            q, a, world = best[:3]
+            q, a, eff, D, st = best
+            world = ""
             if worlds and q > 0:
-                q, world = _world_q(ev, tuple(fixed), E, best[3], best[4], best[5], project, sigma2, q)
+                q, world = _world_q(ev, tuple(fixed), E, eff, D, st, project, sigma2, q)
             out[k] = (q, a, world)
         return out
 

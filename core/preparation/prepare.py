@@ -174,14 +174,7 @@ class _EntryWriter:
     def read_back(self) -> dict:
         """{name: (role, frame_times, points, offsets, path, force)} of the sequences
         written so far, in memory (the fallback when the cache cannot be finished)."""
-        out = {}
-        for name, info in self.meta["sequences"].items():
-            stem = info["stem"]
-            with np.load(self.tmp / f"{stem}.arrays.npz") as z:
-                force = z["force"] if "force" in z.files else None
-                out[name] = (info["role"], z["frame_times"], np.load(self.tmp / f"{stem}.points.npy"),
-                             np.load(self.tmp / f"{stem}.offsets.npy"), ProbePath(z["probe_t"], z["probe_centres"]), force)
-        return out
+        return {name: _read_sequence(self.tmp, info, mapped=False) for name, info in self.meta["sequences"].items()}
 
     def finish(self, reference) -> None:
         if reference is not None:
@@ -189,24 +182,34 @@ class _EntryWriter:
         (self.tmp / "meta.json").write_text(json.dumps(self.meta, indent=1))
         try:
             self.tmp.rename(self.folder)
-        except OSError:  # another process wrote the same entry meanwhile
-            self.abort()
+        except OSError:
+            if not (self.folder / "meta.json").exists():
+                raise  # not a race: the caller reads back what was written
+            self.abort()  # another process wrote the same entry meanwhile
 
     def abort(self) -> None:
         shutil.rmtree(self.tmp, ignore_errors=True)
+
+
+def _read_sequence(folder: Path, info: dict, *, mapped: bool) -> tuple:
+    """One sequence of an entry: (role, frame_times, clouds, path, force) with its clouds
+    memory-mapped as :class:`Clouds` (``mapped``), else (role, frame_times, points,
+    offsets, path, force) in memory."""
+    stem = info["stem"]
+    points, offsets = folder / f"{stem}.points.npy", folder / f"{stem}.offsets.npy"
+    with np.load(folder / f"{stem}.arrays.npz") as z:
+        force = z["force"] if "force" in z.files else None
+        ft, path = z["frame_times"], ProbePath(z["probe_t"], z["probe_centres"])
+    if mapped:
+        return info["role"], ft, Clouds.open(str(points), str(offsets)), path, force
+    return info["role"], ft, np.load(points), np.load(offsets), path, force
 
 
 def _read_entry(folder: Path) -> tuple[Calibration, dict, np.ndarray | None]:
     meta = json.loads((folder / "meta.json").read_text())
     if meta.get("version") != CACHE_VERSION:
         raise ValueError("stale cache entry")
-    seqs = {}
-    for name, info in meta["sequences"].items():
-        stem = info["stem"]
-        clouds = Clouds.open(str(folder / f"{stem}.points.npy"), str(folder / f"{stem}.offsets.npy"))
-        with np.load(folder / f"{stem}.arrays.npz") as z:
-            force = z["force"] if "force" in z.files else None
-            seqs[name] = (info["role"], z["frame_times"], clouds, ProbePath(z["probe_t"], z["probe_centres"]), force)
+    seqs = {name: _read_sequence(folder, info, mapped=True) for name, info in meta["sequences"].items()}
     ref = folder / "reference.npy"
     return Calibration.from_json(meta["calibration"]), seqs, (np.load(ref) if ref.exists() else None)
 

@@ -216,8 +216,7 @@ def replay_sequence(
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times, callback=callback)
     errs, _ = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample, distances=False)
     # the mean over every point of the sequence, from the frames' means and point counts
-    counts = np.diff(np.asarray(seq.clouds.offsets)) if hasattr(seq.clouds, "offsets") else \
-        np.array([c.shape[0] for c in seq.clouds])
+    counts = np.array([c.shape[0] for c in seq.clouds])
     seen = counts > 0
     if sim.ok and seen.any():
         mean = float(np.dot(errs[seen], counts[seen]) / counts[seen].sum())

@@ -109,3 +109,17 @@ def test_a_failed_cleaning_leaves_no_half_written_entry(sample_session, tmp_path
     with pytest.raises(CleaningError, match="frame 7"):
         prepare_session(sample_session, workers=0)
     assert _leftovers() == [] and not any(cache_root().glob("*/meta.json"))
+
+
+def test_an_entry_that_cannot_be_renamed_into_place_falls_back_to_memory(sample_session, tmp_path, monkeypatch):
+    """Not a race with another process (no entry exists): what was written is read back."""
+    monkeypatch.setenv("TISSUETWIN_CACHE_DIR", str(tmp_path / "cache"))
+    cleaned = _spy_cleaning(monkeypatch)
+
+    def no_rename(self, target):
+        raise OSError(18, "Invalid cross-device link")
+
+    monkeypatch.setattr(prepare.Path, "rename", no_rename)
+    got = prepare_session(sample_session, workers=0)
+    assert got.cache_key == "" and _leftovers() == []
+    _as_cleaned(got, cleaned)
