@@ -85,9 +85,14 @@ def _top_noise(prepared: PreparedSession, names, grid, element_size: float | Non
     from core.identification.residuals import signed_residuals
     from core.simulation.replay import replay_mesh
 
+    from core.preparation import release_pages
+
     mesh = replay_mesh(prepared, grid, element_size)
-    res = [signed_residuals(prepared.sequences[n].clouds[i], mesh.nodes, mesh, prepared.size)
-           for n in names for i in prepared.rest_frames(n)]
+    res = []
+    for n in names:
+        clouds = prepared.sequences[n].clouds
+        res += [signed_residuals(clouds[i], mesh.nodes, mesh, prepared.size) for i in prepared.rest_frames(n)]
+        release_pages(clouds)
     res = np.concatenate(res) if res else np.zeros(0)
     return float(np.sqrt(np.mean(res**2))) if res.size > 10 else 1e-3
 

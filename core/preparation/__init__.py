@@ -13,7 +13,7 @@ Public surface::
 
 from core.preparation.calibration import Calibration, calibrate, calibrate_robot_on_landmarks
 from core.preparation.prepare import cache_root, prepare_session
-from core.preparation.prepared import Clouds, PrepareConfig, PreparedSequence, PreparedSession
+from core.preparation.prepared import Clouds, PrepareConfig, PreparedSequence, PreparedSession, release_pages
 from core.preparation.probe import ProbePath
 
 __all__ = [
@@ -27,4 +27,5 @@ __all__ = [
     "cache_root",
     "calibrate",
     "prepare_session",
+    "release_pages",
 ]

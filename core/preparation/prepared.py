@@ -15,13 +15,26 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
+import mmap
+
 import numpy as np
 
 from core.preparation.calibration import Calibration
 from core.preparation.probe import ProbePath
 from core.preparation.shape import RestShape, rest_shape
 
-__all__ = ["Clouds", "PrepareConfig", "PreparedSequence", "PreparedSession"]
+__all__ = ["Clouds", "PrepareConfig", "PreparedSequence", "PreparedSession", "release_pages"]
+
+
+def _mapping_of(array: np.ndarray) -> "mmap.mmap | None":
+    """The ``mmap.mmap`` an array's memory comes from (a ``np.load(mmap_mode=...)`` array
+    and its views, even converted to plain ndarrays), or None."""
+    base = array
+    while base is not None:
+        if isinstance(base, mmap.mmap):
+            return base
+        base = getattr(base, "base", None)
+    return None
 
 
 class Clouds(SequenceABC):
@@ -88,6 +101,27 @@ class Clouds(SequenceABC):
         """(F,) int64 points per frame."""
         return np.diff(self.offsets)
 
+    def release(self) -> bool:
+        """Drop the pages of memory-mapped clouds from this process's resident set
+        (``madvise(MADV_DONTNEED)`` on the read-only mapping: the next access reads them
+        back from the kernel's page cache, or the file). A stage that is done with a
+        sequence calls it, so a process holds the clouds of the sequence it works on, not
+        of every sequence it has touched (on a paper-size session, 3.9 GB of cleaned
+        clouds per process). The whole file's mapping is released (a window's too: they
+        share it). Clouds in memory are left as they are.
+
+        Returns:
+            True when pages were released.
+        """
+        mm = _mapping_of(self.points)
+        if mm is None or not hasattr(mmap, "MADV_DONTNEED") or mm.closed:
+            return False
+        try:
+            mm.madvise(mmap.MADV_DONTNEED)
+        except (OSError, ValueError):
+            return False
+        return True
+
     def __reduce__(self):
         if self.files is not None:  # a worker maps the file itself
             return (Clouds.open, self.files)
@@ -95,6 +129,11 @@ class Clouds(SequenceABC):
 
     def __repr__(self) -> str:
         return f"Clouds({len(self)} frames, {self.points.shape[0]} points{', ' + self.files[0] if self.files else ''})"
+
+
+def release_pages(clouds) -> bool:
+    """:meth:`Clouds.release` for any sequence of clouds (a list of arrays: nothing to do)."""
+    return clouds.release() if isinstance(clouds, Clouds) else False
 
 
 @dataclass(frozen=True)

@@ -17,7 +17,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from core.io import Session
-from core.preparation import Calibration, PreparedSession, prepare_session
+from core.preparation import Calibration, PreparedSession, prepare_session, release_pages
 from core.simulation.effects import Effect
 from core.simulation.mesh import TetMesh
 from core.simulation.meshing import phantom_mesh
@@ -167,6 +167,7 @@ def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3, *,
             if pts.shape[0]:
                 total += float(point_to_mesh_distances(pts, surface).sum())
                 count += pts.shape[0]
+        release_pages(clouds)
     if count == 0 and prepared.reference is not None and prepared.reference.shape[0]:
         return float(point_to_mesh_distances(np.asarray(prepared.reference, dtype=np.float64), surface).mean())
     return total / count if count else float("nan")
@@ -208,13 +209,21 @@ def replay_sequence(
     *,
     model=None,
     callback: Callback | None = None,
+    paper_error: bool = True,
 ) -> SequenceReplay:
-    """Simulate one prepared sequence and measure its error (a fresh model unless given)."""
+    """Simulate one prepared sequence and measure its error (a fresh model unless given).
+
+    ``paper_error`` False skips the paper's metric (frame errors and mean error NaN) for
+    callers that score the simulation otherwise (the E fit's top-face residual)."""
     seq = prepared.sequences[name]
     if model is None:
         model = build_replay_model(prepared, config)
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times, callback=callback)
-    errs, _ = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample, distances=False)
+    if paper_error:
+        errs, _ = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample, distances=False)
+    else:
+        errs = np.full(len(seq.clouds), np.nan)
+    release_pages(seq.clouds)  # done with this sequence's clouds (mapped ones leave the resident set)
     # the mean over every point of the sequence, from the frames' means and point counts
     counts = np.array([c.shape[0] for c in seq.clouds])
     seen = counts > 0
