@@ -206,6 +206,12 @@ def _surface_model_form(prepared: PreparedSession, names, base: Trial, executor:
             "channel": "surface", "evaluations": evaluations}
 
 
+def _say(progress: Progress | None, obj: _Objective, stage: str) -> None:
+    """Report the stage the fit enters (``progress(n_evaluated_E, message)``)."""
+    if progress:
+        progress(len(obj.cache), f"{stage} ({obj.evaluations} replays so far)")
+
+
 def fit_youngs_modulus(
     prepared: PreparedSession,
     *,
@@ -254,10 +260,14 @@ def fit_youngs_modulus(
     if not np.isfinite(d0) or d0 <= 0:
         d0 = 1e-3
     f0 = _force_noise(prepared, names) if use_force else None
-    obj = _Objective(prepared, names, base, executor, use_force, d0, f0, progress, metric)
+    # the objective's trials measure only what J needs: the paper's per-frame error (most of
+    # a paper-size trial's time) is measured once, at the fitted E, for the errors per role
+    scored = replace(base, paper_error=metric == "paper")
+    obj = _Objective(prepared, names, scored, executor, use_force, d0, f0, progress, metric)
 
     lo, hi = math.log10(bounds[0]), math.log10(bounds[1])
     coarse = [E for E in PAPER_COARSE if bounds[0] <= E <= bounds[1]] or [10 ** ((lo + hi) / 2)]
+    _say(progress, obj, "coarse scan")
     obj.results(coarse)
     Jc = {E: obj.terms(E)[0] for E in coarse}
     finite = {E: J for E, J in Jc.items() if np.isfinite(J)}
@@ -265,10 +275,12 @@ def fit_youngs_modulus(
         raise TissueTwinError("every trial of the coarse scan diverged")
     best = min(finite, key=finite.get)
     a, b = max(lo, math.log10(best) - 1), min(hi, math.log10(best) + 1)
+    _say(progress, obj, "minimising J")
     res = minimize_scalar(obj, bounds=(a, b), method="bounded", options={"xatol": 0.004})
     E_star = float(10.0**res.x)
     # profile: a log grid of half-decade steps up to a decade either side, plus all evaluated points
     grid_pts = [E_star * 10.0**k for k in (-1.0, -0.5, -0.25, -0.1, 0.1, 0.25, 0.5, 1.0)]
+    _say(progress, obj, "profile")
     obj.results([E for E in grid_pts if bounds[0] <= E <= bounds[1]])
     Es = np.array(sorted(obj.cache))
     rows = [(float(E), *obj.terms(E)) for E in Es]
@@ -287,6 +299,7 @@ def fit_youngs_modulus(
     probe_sigma = float(prepared.calibration.probe_sigma)
     shift = 0.0
     if verdict["identifiable"] and math.isfinite(probe_sigma) and probe_sigma > 0:
+        _say(progress, obj, "calibration shift")
         shift, n_cal = _calibration_shift(obj, E_star, probe_sigma)
         obj.evaluations += n_cal
         verdict = youngs_verdict(Es, J, calibration_shift=shift, **rule)
@@ -302,19 +315,21 @@ def fit_youngs_modulus(
         sizes = (base.element_size, h / 2.0)
     refined_value = None
     if identifiable and refine_mesh:
-        fine_base = replace(base, element_size=sizes[1]) if stl else replace(base, grid=refined)
+        fine_base = replace(scored, element_size=sizes[1]) if stl else replace(scored, grid=refined)
+        _say(progress, obj, "refit on the refined mesh")
         fine = _Objective(prepared, names, fine_base, executor, use_force, d0, f0, progress, metric)
         r2 = minimize_scalar(fine, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded", options={"xatol": 0.004})
         refined_value = float(10.0**r2.x)
         obj.evaluations += fine.evaluations
 
     # errors per role at the fitted E on the replay grid
+    _say(progress, obj, "errors per role")
     errors = {}
     for role in ("train", "validation", "test"):
         ns = [n for n, s in prepared.sequences.items() if s.role == role]
         if not ns:
             continue
-        if role == "train":
+        if role == "train" and metric == "paper":
             rs = obj.cache[float(10.0**res.x)] if float(10.0**res.x) in obj.cache else None
             if rs and all(r.ok for r in rs):
                 errors[role] = float(sum(r.frame_sums.sum() for r in rs) / sum(r.frame_counts.sum() for r in rs))
@@ -332,6 +347,7 @@ def fit_youngs_modulus(
         # the interval holds E under other laws, Poisson's ratios and grids (model form)
         from core.identification.model_form import youngs_model_form
 
+        _say(progress, obj, "model form (force)")
         model_form = youngs_model_form(prepared, base.effects, E_star, names=names, executor=executor)
         obj.evaluations += len(model_form["variants"]) * len(names)
         if model_form["low"] is not None:
@@ -342,7 +358,8 @@ def fit_youngs_modulus(
     elif identifiable:
         # no force: a body force's sag (or a foundation) sets E, and the sag depends on the
         # law and on Poisson's ratio too; E is refitted to the surface under each
-        model_form = _surface_model_form(prepared, names, base, executor, d0, progress, metric, E_star)
+        _say(progress, obj, "model form (surface)")
+        model_form = _surface_model_form(prepared, names, scored, executor, d0, progress, metric, E_star)
         obj.evaluations += model_form.pop("evaluations")
         if model_form["low"] is not None:
             lo_i = min(lo_i, model_form["low"] * (lo_i / E_star))
