@@ -18,11 +18,43 @@ from core.errors import TissueTwinError
 DEFAULT_DATA = Path(os.environ.get("TISSUETWIN_DATA", "data"))
 
 
+class _LogLines:
+    """Progress for a log file or pipe (no terminal, where a rich bar shows nothing until
+    it ends): one timestamped line when the stage changes (the message with its numbers
+    left out), another tenth of the work is done, or 30 s passed, so a long run's log says
+    where its time goes without a line per frame."""
+
+    def __init__(self, description: str, every: float = 30.0):
+        import re
+        import time
+
+        self.description, self.time, self.every = description, time.perf_counter, every
+        self.t0 = self.last_t = self.time()
+        self.digits = re.compile(r"[0-9.]+")
+        self.last = (None, -1)
+
+    def __call__(self, fraction: float | None, message: str = "") -> None:
+        tenth = -1 if fraction is None else int(min(max(fraction, 0.0), 1.0) * 10)
+        stage = self.digits.sub("#", message)
+        now = self.time()
+        if stage == self.last[0] and tenth <= self.last[1] and now - self.last_t < self.every:
+            return
+        self.last, self.last_t = (stage, max(tenth, self.last[1] if stage == self.last[0] else -1)), now
+        done = "" if fraction is None else f" {min(max(fraction, 0.0), 1.0):4.0%}"
+        print(f"[{now - self.t0:8.1f} s] {self.description}{done} {message}".rstrip(), file=sys.stderr, flush=True)
+
+
 @contextmanager
 def _progress(description: str):
-    """Yield a ``callback(fraction, message)`` that drives a rich progress bar."""
+    """Yield a ``callback(fraction, message)`` that drives a rich progress bar (timestamped
+    lines when stderr is not a terminal: :class:`_LogLines`)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    if not sys.stderr.isatty():
+        lines = _LogLines(description)
+        yield lines
+        lines(1.0, "done")
+        return
     with Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -212,14 +244,23 @@ def cmd_demo(args) -> int:
 
 @contextmanager
 def _trial_progress(description: str):
-    """A rich progress bar counting trials done: yields ``progress(done, total)``."""
+    """A rich progress bar counting trials done: yields ``progress(done, total)``
+    (timestamped lines when stderr is not a terminal: :class:`_LogLines`)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+    if not sys.stderr.isatty():
+        lines = _LogLines(description)
+
+        def progress(done: int, total) -> None:
+            lines(None, f"{done}/{total}" if isinstance(total, int) else f"{done} {total or ''}")
+
+        yield progress
+        return
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn()) as bar:
         task = bar.add_task(description, total=None)
 
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
+        def progress(done: int, total) -> None:
+            bar.update(task, completed=done, total=total if isinstance(total, int) else done)
 
         yield progress
 
@@ -282,7 +323,7 @@ def cmd_fit(args) -> int:
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _trial_progress("fit: E values evaluated") as pr:
         result = fit_youngs_modulus(
             prepared, base=_base_trial(args), executor=ex, use_force=None if args.force == "auto" else args.force == "yes",
-            refine_mesh=not args.no_mesh_refinement, progress=lambda n, msg: pr(n, n),
+            refine_mesh=not args.no_mesh_refinement, progress=lambda n, msg: pr(n, msg),
         )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
