@@ -24,7 +24,7 @@ from core.errors import TissueTwinError
 from core.identification.execution import Executor
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
-from core.preparation import PreparedSession
+from core.preparation import PreparedSession, release_pages
 from core.simulation.meshing import mean_edge_length
 from core.simulation.replay import build_replay_model, frame_errors, replay_mesh
 from core.simulation.effects import FitSpace
@@ -136,18 +136,29 @@ class FieldRun:
 
 _BINS: dict = {}
 
+BINS_CACHE_BYTES = 1 << 30
+"""Most bytes of binned points a process keeps (:func:`_binned`; the oldest go first, the
+newest always stays): a paper-size sequence's are ~0.4 GB, a 12 s one's a few MB."""
+
+
+def _bins_bytes(binned) -> int:
+    pts, idx, counts = binned
+    return int(sum(p.nbytes for p in pts) + sum(i.nbytes for i in idx) + counts.nbytes)
+
 
 def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
-    """:func:`frame_bins` of a sequence's clouds, computed once per worker process."""
+    """:func:`frame_bins` of a sequence's clouds, computed once per worker process (at most
+    16 sequences and :data:`BINS_CACHE_BYTES` kept)."""
     clouds = prepared.sequences[name].clouds
     key = (str(prepared.path), id(clouds), name, layout)
     hit = _BINS.get(key)
     # the entry holds the clouds themselves: an id is reused once its object is freed (the
     # planner's virtual sequences share names and come and go)
     if hit is None or hit[0] is not clouds:
-        if len(_BINS) >= 16:
+        binned = frame_bins(clouds, layout)
+        hit = _BINS[key] = (clouds, binned, _bins_bytes(binned))
+        while len(_BINS) > 1 and (len(_BINS) > 16 or sum(h[2] for h in _BINS.values()) > BINS_CACHE_BYTES):
             _BINS.pop(next(iter(_BINS)))
-        hit = _BINS[key] = (clouds, frame_bins(clouds, layout))
     return hit[1]
 
 
@@ -206,6 +217,7 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
         dfield = residual_field_tangent(sim.positions, dpos, shape, item.layout, pts, bins, counts)
         run = replace(run, jac_field=dfield, jac_force=np.asarray(dforce, dtype=np.float64), d_youngs=d_E,
                       d_offset=d_off)
+    release_pages(seq.clouds)  # done with this sequence's clouds (mapped ones leave the resident set)
     return run
 
 

@@ -342,17 +342,38 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
     ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
     if not np.any(ok) or n_dir == 0:
         return out
-    use = np.flatnonzero(ok)
-    fr = np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in use])
-    pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
-    bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
-    dr = layout.residuals_tangent(pts, bn, fr, pos, dpositions, grid)
-    flat = fr * B + bn
     n = np.where(ok[:, None], counts, 0).astype(np.float64)
+    sums = np.zeros((n_dir, F * B))
+    for fr, pts, bn in _chunks(points, bins, np.flatnonzero(ok)):
+        dr = layout.residuals_tangent(pts, bn, fr, pos, dpositions, grid)
+        flat = fr * B + bn
+        for t in range(n_dir):
+            sums[t] += np.bincount(flat, weights=dr[t], minlength=F * B)
     for t in range(n_dir):
-        sums = np.bincount(flat, weights=dr[t], minlength=F * B).reshape(F, B)
-        out[t] = np.divide(sums, n, out=np.zeros((F, B)), where=n > 0)
+        out[t] = np.divide(sums[t].reshape(F, B), n, out=np.zeros((F, B)), where=n > 0)
     return out
+
+
+CHUNK_POINTS = 1_000_000
+"""Points per pass of :func:`residual_field` and :func:`residual_field_tangent`: whole frames
+are taken together up to about this many points, so a paper-size sequence (1800 frames of
+~15k points) does not hold gigabytes of float64 copies at once."""
+
+
+def _chunks(points, bins, use: np.ndarray):
+    """Yield (frame index (K,) int64, points (K, 3) float64, bins (K,) int64) over the frames
+    ``use``, whole frames at a time, about :data:`CHUNK_POINTS` points per chunk."""
+    start = 0
+    while start < use.size:
+        stop, k = start, 0
+        while stop < use.size and (stop == start or k + points[use[stop]].shape[0] <= CHUNK_POINTS):
+            k += points[use[stop]].shape[0]
+            stop += 1
+        frames = use[start:stop]
+        yield (np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in frames]),
+               np.concatenate([np.asarray(points[f], dtype=np.float64) for f in frames]),
+               np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in frames]))
+        start = stop
 
 
 def frame_bins(clouds, layout: FieldLayout) -> tuple[list[np.ndarray], list[np.ndarray], np.ndarray]:
@@ -362,15 +383,16 @@ def frame_bins(clouds, layout: FieldLayout) -> tuple[list[np.ndarray], list[np.n
         clouds: F arrays (M_f, 3) of measured points, m, phantom frame.
 
     Returns:
-        (points: F arrays (K_f, 3), bins: F int arrays (K_f,), counts: (F, B) int64).
+        (points: F arrays (K_f, 3) of the clouds' dtype, bins: F int32 arrays (K_f,),
+        counts: (F, B) int64).
     """
     pts, idx = [], []
     counts = np.zeros((len(clouds), layout.n_bins), dtype=np.int64)
     for f, c in enumerate(clouds):
         b = layout.index(c)
         keep = b >= 0
-        pts.append(np.asarray(c, dtype=np.float64)[keep])
-        idx.append(b[keep])
+        pts.append(np.asarray(c)[keep])  # as stored (float32 from the cache): a float64 copy doubled it
+        idx.append(b[keep].astype(np.int32))
         counts[f] = np.bincount(b[keep], minlength=layout.n_bins)
     return pts, idx, counts
 
@@ -399,18 +421,20 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
     ok = np.array([points[f].shape[0] > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
     if not np.any(ok):
         return field, ss, dof
-    use = np.flatnonzero(ok)
-    fr = np.concatenate([np.full(points[f].shape[0], f, dtype=np.int64) for f in use])
-    pts = np.concatenate([np.asarray(points[f], dtype=np.float64) for f in use])
-    bn = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in use])
-    fb = face_of[bn]
-    r = layout.residuals(pts, bn, fr, pos, grid)
-    flat = fr * B + bn
-    sums = np.bincount(flat, weights=r, minlength=F * B).reshape(F, B)
     n = np.where(ok[:, None], counts, 0)
-    field = np.divide(sums, n, out=np.zeros((F, B)), where=n > 0)
-    ss = np.bincount(fb, weights=(r - field.ravel()[flat]) ** 2, minlength=G)
-    dof = np.bincount(fb, minlength=G) - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=G)
+    points_per_group = np.zeros(G, dtype=np.int64)
+    for fr, pts, bn in _chunks(points, bins, np.flatnonzero(ok)):
+        fb = face_of[bn]
+        r = layout.residuals(pts, bn, fr, pos, grid)
+        flat = fr * B + bn
+        # a chunk holds whole frames: their bin means are final once it is summed
+        sums = np.bincount(flat, weights=r, minlength=F * B)
+        mean = np.divide(sums, n.ravel(), out=np.zeros(F * B), where=n.ravel() > 0)
+        rows = np.unique(fr)
+        field[rows] = mean.reshape(F, B)[rows]
+        ss += np.bincount(fb, weights=(r - mean[flat]) ** 2, minlength=G)
+        points_per_group += np.bincount(fb, minlength=G)
+    dof = points_per_group - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=G)
     return field, ss, dof.astype(np.int64)
 
 

@@ -81,3 +81,29 @@ def test_the_field_reads_a_known_offset_and_its_tangent_matches_differences(dome
         scale = np.abs(fd[0, on]).max()
         assert np.abs(tangent[t][0, on] - fd[0, on]).max() < 0.05 * scale
         assert np.abs(tangent[t][has] - fd[has]).max() < 0.10 * np.abs(fd[has]).max()
+
+
+def test_the_field_in_chunks_of_frames_equals_the_field_in_one_pass(dome, monkeypatch):
+    """A paper-size sequence is measured a chunk of whole frames at a time (memory): the
+    bin means, the noise groups' sums of squares and degrees of freedom, and the tangent
+    must not depend on the chunk size."""
+    import core.diagnosis.fields as fields
+
+    layout = PatchLayout(dome, 16)
+    F = 7
+    clouds = [_sphere_points(300 + 50 * f, 1e-4 * f, f) for f in range(F)]
+    pts, bins, counts = frame_bins(clouds, layout)
+    rng = np.random.default_rng(5)
+    positions = np.repeat(dome.nodes[None], F, axis=0) + rng.normal(scale=2e-4, size=(F, dome.n_nodes, 3))
+    positions[4] = np.nan  # a diverged frame stays empty either way
+    directions = rng.normal(scale=1e-3, size=(3, F, dome.n_nodes, 3))
+    one = residual_field(positions, dome, layout, pts, bins, counts)
+    tan_one = residual_field_tangent(positions, directions, dome, layout, pts, bins, counts)
+    monkeypatch.setattr(fields, "CHUNK_POINTS", 400)  # about a frame per chunk
+    chunked = residual_field(positions, dome, layout, pts, bins, counts)
+    tan_chunked = residual_field_tangent(positions, directions, dome, layout, pts, bins, counts)
+    np.testing.assert_array_equal(chunked[0], one[0])
+    np.testing.assert_allclose(chunked[1], one[1], rtol=1e-12)
+    np.testing.assert_array_equal(chunked[2], one[2])
+    np.testing.assert_array_equal(tan_chunked, tan_one)
+    assert np.all(one[0][4] == 0) and np.any(one[0] != 0)
