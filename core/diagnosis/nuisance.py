@@ -84,8 +84,8 @@ BOUNDS: dict[str, tuple[float, float]] = {
 """Plausible range of each nuisance coefficient, in units of its step: E is free; the
 remaining mesh error may be up to 1.5 times the fine minus coarse grid's; the law up to
 twice the neo-Hookean/corotational difference; nu between 0.38 and 0.485; Rayleigh
-stiffness damping between 0.05 and 0.3 s; the contact between 10x softer and as much
-stiffer; the camera's registration and the phantom's geometry off by up to 0.2 mm; the
+stiffness damping between 0.05 and 0.3 s; the contact between 10x softer and 1.9x stiffer
+(the same linear step the other way); the camera's registration and the phantom's geometry off by up to 0.2 mm; the
 robot's calibration within three of its standard errors (the robot directions are per
 standard error). The generic discrepancy's coefficients are free."""
 
