@@ -10,13 +10,16 @@ runs it, through the ``tissuetwin`` command line in a fresh process:
 - ``fit`` (E with its interval; force columns),
 - ``diagnose`` (``--segments N`` unless ``--segments 0``; every effect kind a candidate).
 
-Per stage it prints the wall time, the peak resident memory of the whole process tree
-(the command and its Dask workers, sampled every 0.2 s with psutil, so a short peak can
-be missed) and, from the second length on, the growth exponent against the first length
+Per stage it prints the wall time, the peak memory of the whole process tree (the
+command and its Dask workers, sampled every 0.2 s, so a short peak can be missed):
+resident, proportional (a page mapped by several processes, such as the memory-mapped
+cleaned clouds, counted once) and anonymous (the private heap; see :func:`tree_memory`), and, from the second length on, the growth exponent against the first length
 (log time ratio / log length ratio: 1 is linear).
 
     .venv/bin/python -m benchmarks.bench_scaling [--minutes 1 2 4 8] [--stages replay fit diagnose]
         [--segments 8] [--workers 2] [--root DIR] [--preset small]
+    .venv/bin/python -m benchmarks.bench_scaling --session PAPER_SESSION --root DIR
+        (the stages on an existing session, e.g. `tissuetwin generate --preset paper`'s)
 
 Sessions are kept (and reused) under ``--root``. Asserts nothing.
 """
@@ -40,37 +43,85 @@ import psutil
 CLI = [sys.executable, "-m", "app.cli"]
 
 
-def tree_rss(proc: psutil.Process) -> int:
-    """Resident memory in bytes of ``proc`` and all its descendants (0 for those gone)."""
-    total = 0
+def _smaps_rollup(pid: int) -> dict[str, int]:
+    """Rss, Pss and Anonymous bytes of one process from ``/proc/PID/smaps_rollup`` (Linux)."""
+    out = {}
+    with open(f"/proc/{pid}/smaps_rollup") as f:
+        for line in f:
+            key, _, rest = line.partition(":")
+            if key in ("Rss", "Pss", "Anonymous"):
+                out[key] = int(rest.split()[0]) * 1024
+    return out
+
+
+def tree_memory(proc: psutil.Process, children: bool = True) -> dict[str, int]:
+    """Memory in bytes of ``proc`` and all its descendants (those gone count 0).
+
+    Returns ``{"rss": resident, "pss": proportional, "anon": anonymous}``. Resident counts
+    every mapped page in every process that maps it, so the cleaned clouds a command and
+    its Dask workers all memory-map (read-only page cache, dropped under pressure) are
+    counted once per process; the proportional set size counts a shared page once in all;
+    anonymous memory is the private heap that cannot be dropped without swap. Without
+    ``smaps_rollup`` (not Linux) pss and anon equal rss.
+    """
+    total = {"rss": 0, "pss": 0, "anon": 0}
     try:
-        procs = [proc, *proc.children(recursive=True)]
+        procs = [proc, *proc.children(recursive=True)] if children else [proc]
     except psutil.Error:
-        return 0
+        return total
     for p in procs:
         try:
-            total += p.memory_info().rss
+            rss = p.memory_info().rss
+            try:
+                roll = _smaps_rollup(p.pid)
+            except OSError:
+                roll = {}
+            total["rss"] += rss
+            total["pss"] += roll.get("Pss", rss)
+            total["anon"] += roll.get("Anonymous", rss)
         except psutil.Error:
             pass
     return total
 
 
-def run_measured(cmd: list[str], env: dict, log: Path) -> tuple[float, int, int]:
-    """Run ``cmd`` and sample its process tree's resident memory.
+def tree_rss(proc: psutil.Process) -> int:
+    """Resident memory in bytes of ``proc`` and all its descendants (0 for those gone)."""
+    return tree_memory(proc)["rss"]
+
+
+def run_measured(cmd: list[str], env: dict, log: Path, series: Path | None = None) -> tuple[float, dict[str, int], int]:
+    """Run ``cmd`` and sample its process tree's memory every 0.2 s (:func:`tree_memory`);
+    with ``series``, every second's sample of the command itself and of its workers apart
+    goes to that CSV (``t_s, main_rss, main_pss, main_anon, workers_rss, workers_pss,
+    workers_anon``, bytes), to line up with the command's timestamped log.
 
     Returns:
-        (wall time in s, peak resident bytes of the tree, exit code); the output goes to ``log``.
+        (wall time in s, peak bytes of the tree ``{"rss", "pss", "anon"}`` (each its own
+        peak), exit code); the output goes to ``log``.
     """
     with open(log, "w") as out:
         t0 = time.perf_counter()
         popen = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, env=env)
         proc = psutil.Process(popen.pid)
-        peak = [0]
+        peak = {"rss": 0, "pss": 0, "anon": 0}
         stop = threading.Event()
+        rows = open(series, "w") if series else None
+        if rows:
+            rows.write("t_s,main_rss,main_pss,main_anon,workers_rss,workers_pss,workers_anon\n")
 
         def sample():
+            last = -1.0
             while not stop.is_set():
-                peak[0] = max(peak[0], tree_rss(proc))
+                for k, v in tree_memory(proc).items():
+                    peak[k] = max(peak[k], v)
+                now = time.perf_counter() - t0
+                if rows and now - last >= 1.0:
+                    last = now
+                    main = tree_memory(proc, children=False)
+                    both = tree_memory(proc)
+                    rows.write(f"{now:.1f}," + ",".join(str(main[k]) for k in ("rss", "pss", "anon")) + ","
+                               + ",".join(str(both[k] - main[k]) for k in ("rss", "pss", "anon")) + "\n")
+                    rows.flush()
                 stop.wait(0.2)
 
         th = threading.Thread(target=sample, daemon=True)
@@ -78,7 +129,39 @@ def run_measured(cmd: list[str], env: dict, log: Path) -> tuple[float, int, int]
         code = popen.wait()
         stop.set()
         th.join()
-        return time.perf_counter() - t0, peak[0], code
+        if rows:
+            rows.close()
+        return time.perf_counter() - t0, peak, code
+
+
+def _gib(peak: dict[str, int]) -> str:
+    return (f"peak resident {peak['rss'] / 2**30:.2f} GiB, proportional {peak['pss'] / 2**30:.2f} GiB, "
+            f"anonymous {peak['anon'] / 2**30:.2f} GiB")
+
+
+def _stage_command(stage: str, session: Path, out: Path, workers: int, segments: int) -> list[str]:
+    if stage == "replay":
+        return [*CLI, "replay", str(session), "--out", str(out)]
+    cmd = [*CLI, stage, str(session), "--out", str(out), "--workers", str(workers)]
+    if stage == "diagnose" and segments:
+        cmd += ["--segments", str(segments)]
+    return cmd
+
+
+def measure_session(session: Path, root: Path, stages, workers: int, segments: int, keep_cache: bool = False) -> None:
+    """Run ``stages`` on one existing session (``--session``: the paper preset's) and print
+    wall time and peak memory of each (each stage's memory every second in
+    ``root/<stage>-<session>.memory.csv``) (the preparation cache under ``root`` is emptied
+    first, so the first stage pays for cleaning, unless ``keep_cache``)."""
+    env = dict(os.environ, TISSUETWIN_CACHE_DIR=str(root / "cache"))
+    if not keep_cache:
+        shutil.rmtree(root / "cache", ignore_errors=True)
+    print(f"session {session}; {workers} workers; diagnose --segments {segments}", flush=True)
+    for stage in stages:
+        out = root / f"{stage}-{session.name}"
+        t, peak, code = run_measured(_stage_command(stage, session, out, workers, segments), env,
+                                     root / f"{stage}-{session.name}.log", root / f"{stage}-{session.name}.memory.csv")
+        print(f"{stage:8s} {t:7.1f} s, {_gib(peak)}, exit {code}", flush=True)
 
 
 def main() -> None:
@@ -91,10 +174,17 @@ def main() -> None:
     ap.add_argument("--preset", default="small")
     ap.add_argument("--root", type=Path, help="keep (and reuse) sessions and outputs here")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--session", type=Path, help="measure the stages on this existing session instead "
+                    "(e.g. one written by `tissuetwin generate --preset paper`)")
+    ap.add_argument("--keep-cache", action="store_true", help="with --session: keep the preparation cache of an "
+                    "earlier run under --root (the stages then read the cleaned clouds instead of cleaning)")
     args = ap.parse_args()
 
     root = args.root or Path(tempfile.mkdtemp(prefix="tt-scaling-"))
     root.mkdir(parents=True, exist_ok=True)
+    if args.session:
+        measure_session(args.session, root, args.stages, args.workers, args.segments, args.keep_cache)
+        return
     env = dict(os.environ, TISSUETWIN_CACHE_DIR=str(root / "cache"))
     gravity = json.dumps([{"kind": "gravity", "g": [0.0, 0.0, -9.81]}])
     rows: dict[str, list[tuple[float, float, int, int]]] = {s: [] for s in args.stages}
@@ -107,28 +197,25 @@ def main() -> None:
             t, peak, code = run_measured([*CLI, "generate", "--preset", args.preset, "--duration", f"{seq_s:g}",
                                           "--seed", str(args.seed), "--force", "--effects", gravity, "--overwrite",
                                           "--out", str(session)], env, root / f"generate-{minutes:g}.log")
-            print(f"{minutes:g} min: generated in {t:.0f} s (peak {peak / 2**30:.2f} GiB), exit {code}", flush=True)
+            print(f"{minutes:g} min: generated in {t:.0f} s ({_gib(peak)}), exit {code}", flush=True)
             if code:
                 continue
         shutil.rmtree(root / "cache", ignore_errors=True)  # the first stage pays for cleaning
         for stage in args.stages:
             out = root / f"{stage}-{minutes:g}min"
-            cmd = [*CLI, stage, str(session), "--out", str(out), "--workers", str(args.workers)]
-            if stage == "replay":
-                cmd = [*CLI, "replay", str(session), "--out", str(out)]
-            if stage == "diagnose" and args.segments:
-                cmd += ["--segments", str(args.segments)]
+            cmd = _stage_command(stage, session, out, args.workers, args.segments)
             t, peak, code = run_measured(cmd, env, root / f"{stage}-{minutes:g}.log")
             rows[stage].append((minutes, t, peak, code))
-            print(f"{minutes:g} min: {stage:8s} {t:7.1f} s, peak {peak / 2**30:.2f} GiB, exit {code}", flush=True)
+            print(f"{minutes:g} min: {stage:8s} {t:7.1f} s, {_gib(peak)}, exit {code}", flush=True)
 
-    print("\nstage     minutes   wall s   peak GiB   growth exponent vs the first length (1 = linear)")
+    print("\nstage     minutes   wall s   resident GiB  proportional GiB  anonymous GiB   growth exponent vs the first length (1 = linear)")
     for stage, rs in rows.items():
         for m, t, peak, code in rs:
             m0, t0 = rs[0][0], rs[0][1]
             k = math.log(t / t0) / math.log(m / m0) if m != m0 and t0 > 0 else float("nan")
             flag = "" if code == 0 else f"  (exit {code})"
-            print(f"{stage:9s} {m:7g} {t:8.1f} {peak / 2**30:10.2f}   {k:5.2f}{flag}")
+            print(f"{stage:9s} {m:7g} {t:8.1f} {peak['rss'] / 2**30:12.2f} {peak['pss'] / 2**30:17.2f} "
+                  f"{peak['anon'] / 2**30:14.2f}   {k:5.2f}{flag}")
 
 
 if __name__ == "__main__":
