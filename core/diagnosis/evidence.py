@@ -13,7 +13,8 @@ spirit of Kennedy & O'Hagan 2001).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from collections import OrderedDict
+from dataclasses import dataclass, fields as dataclass_fields, replace
 from typing import Sequence
 
 import numpy as np
@@ -134,6 +135,45 @@ class FieldRun:
     """(p,) d clock_offset / d theta, s per unit."""
 
 
+RUNS_CACHE_BYTES = 1 << 30
+"""Most bytes of field runs an :class:`Evidence` keeps (:class:`RunCache`): a paper-size
+diagnosis made ~3700 runs whose fields and derivatives, all kept, held ~3 GB."""
+
+
+def _run_bytes(run: "FieldRun") -> int:
+    return int(sum(v.nbytes for f in dataclass_fields(run) if isinstance(v := getattr(run, f.name), np.ndarray)))
+
+
+class RunCache(OrderedDict):
+    """Field runs by key, least recently used first, at most ``limit`` bytes of arrays (the
+    most recent run always stays). A run dropped and asked for again is replayed: runs are
+    deterministic, so answers do not depend on the limit, only the simulation count does."""
+
+    def __init__(self, limit: int = RUNS_CACHE_BYTES):
+        super().__init__()
+        self.limit, self.bytes = int(limit), 0
+
+    def get_recent(self, key):
+        """The run under ``key`` (marked recently used), or None."""
+        run = super().get(key)
+        if run is not None:
+            self.move_to_end(key)
+        return run
+
+    def put(self, key, run: "FieldRun") -> None:
+        if key in self:
+            self.bytes -= _run_bytes(self.pop(key))
+        self[key] = run
+        self.bytes += _run_bytes(run)
+        while self.bytes > self.limit and len(self) > 1:
+            _, old = self.popitem(last=False)
+            self.bytes -= _run_bytes(old)
+
+    def clear(self) -> None:
+        super().clear()
+        self.bytes = 0
+
+
 _BINS: dict = {}
 
 BINS_CACHE_BYTES = 1 << 30
@@ -248,7 +288,7 @@ class Evidence:
 
     def __init__(self, prepared: PreparedSession, cfg: DiagnosisConfig, executor: Executor, layout: FieldLayout):
         self.prepared, self.cfg, self.executor, self.layout = prepared, cfg, executor, layout
-        self.cache: dict = {}
+        self.cache = RunCache()
         self.delta: dict[str, np.ndarray] = {}
         self.force_delta: dict[str, np.ndarray] = {}
         self.force_ratio: dict[str, float] = {}
@@ -334,21 +374,28 @@ class Evidence:
             k = self._key(m, n, paper, grid)
             return k if d is None else k + ("jacobian", None if d.space is None else d.space.kind, d.fit_youngs)
 
-        todo, keys = [], []
+        todo, keys, found = [], [], {}
         for m, d in items:
             for n in names:
                 k = key(m, d, n)
-                if k not in self.cache and k not in keys:
+                if k in found:
+                    continue
+                hit = self.cache.get_recent(k)
+                if hit is not None:
+                    found[k] = hit
+                elif k not in keys:
                     keys.append(k)
                     todo.append(FieldTrial(self.trial(n, m, grid), self.layout, paper, d))
         if todo:
             out = self.executor.map(run_field, self.prepared, todo)
             self.simulations += len(todo)
-            self.cache.update(zip(keys, out))
             for k, r, item in zip(keys, out, todo):
-                if item.directions is not None:  # the run itself answers plain requests too
-                    self.cache.setdefault(k[:-3], replace(r, jac_field=None, jac_force=None, d_youngs=None, d_offset=None))
-        return [[self.cache[key(m, d, n)] for n in names] for m, d in items]
+                found[k] = r
+                self.cache.put(k, r)
+                if item.directions is not None and k[:-3] not in self.cache:
+                    # the run itself answers plain requests too
+                    self.cache.put(k[:-3], replace(r, jac_field=None, jac_force=None, d_youngs=None, d_offset=None))
+        return [[found[key(m, d, n)] for n in names] for m, d in items]
 
     def jacobian(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
         """(L, p) d :meth:`vector` / d theta of runs from :meth:`jacobian_runs`: the field's

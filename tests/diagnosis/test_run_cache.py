@@ -1,0 +1,58 @@
+"""The diagnosis's cache of field runs is bounded in bytes (a paper-size diagnosis kept ~3 GB
+of runs): dropping a run costs a replay, never a different answer."""
+
+import numpy as np
+
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.evidence import Evidence, RunCache, _run_bytes
+from core.diagnosis.patches import field_layout
+from core.identification.execution import SerialExecutor
+from core.preparation import prepare_session
+
+
+def _evidence(session, limit):
+    prepared = prepare_session(session)
+    cfg = DiagnosisConfig(fine_grid=None)
+    ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
+    ev.cache = RunCache(limit)
+    return ev
+
+
+def test_a_bounded_cache_replays_what_it_dropped_and_answers_the_same(small_session):
+    roomy, tight = _evidence(small_session, 1 << 30), _evidence(small_session, 1)
+    gravity = [{"kind": "gravity", "g": [0.0, 0.0, -9.81]}]
+    first = {name: ev.runs([[], gravity], "validation") for name, ev in (("roomy", roomy), ("tight", tight))}
+    n_val = len(roomy.names["validation"])
+    assert roomy.simulations == tight.simulations == 2 * n_val
+    # the limit keeps one run; the roomy cache holds all of them
+    assert len(tight.cache) == 1 and len(roomy.cache) == 2 * n_val
+    assert roomy.cache.bytes == sum(_run_bytes(r) for r in roomy.cache.values()) > 0
+    again = {name: ev.runs([[], gravity], "validation") for name, ev in (("roomy", roomy), ("tight", tight))}
+    assert roomy.simulations == 2 * n_val  # all cached
+    assert tight.simulations > 2 * n_val  # dropped runs replayed
+    for name in ("roomy", "tight"):
+        for a, b in zip(first[name], again[name]):
+            for ra, rb in zip(a, b):
+                np.testing.assert_array_equal(ra.field, rb.field)
+    for a, b in zip(first["roomy"], first["tight"]):
+        for ra, rb in zip(a, b):
+            np.testing.assert_array_equal(ra.field, rb.field)
+            np.testing.assert_array_equal(ra.force, rb.force)
+    # gravity changes the field: the runs compared are not all the same run
+    assert not np.array_equal(first["roomy"][0][0].field, first["roomy"][1][0].field)
+
+
+def test_the_least_recently_used_run_goes_first():
+
+    from dataclasses import make_dataclass
+
+    Run = make_dataclass("Run", [("a", np.ndarray)])
+    cache = RunCache(limit=3 * 800)
+    for k in "abc":
+        cache.put(k, Run(np.zeros(100)))
+    assert cache.get_recent("a") is not None  # a is now the most recent
+    cache.put("d", Run(np.zeros(100)))
+    assert list(cache) == ["c", "a", "d"] and cache.bytes == 2400
+    assert cache.get_recent("b") is None
+    cache.put("big", Run(np.zeros(1000)))  # larger than the limit: kept alone
+    assert list(cache) == ["big"] and cache.bytes == 8000
