@@ -227,7 +227,7 @@ PRESET_NOTES: dict[str, str] = {
     "paper": "Wu et al. 2020 scale: 12 sequences (2 min validation, 2 x 1 min test, 9 x 1 min train), "
              "camera 30 Hz at 1280 x 960 (~45k phantom points per frame, as the paper's subsampled "
              "clouds; 31k-57k depending on the seed's camera distance), kinematics 1 kHz, "
-             "25 x 10 x 10 truth mesh; 16 min and 12 GB (measured 2026-11-26, seed 7, force columns)",
+             "25 x 10 x 10 truth mesh; 14-16 min and 12 GB (measured 2026-11-26/27, seed 7, force columns)",
 }
 """One line per preset: what it is for, its sizes and its cost on a 2-core machine."""
 
