@@ -136,54 +136,57 @@ class FieldRun:
 
 
 RUNS_CACHE_BYTES = 1 << 30
-"""Most bytes of field runs an :class:`Evidence` keeps (:class:`RunCache`): a paper-size
+"""Most bytes of field runs an :class:`Evidence` keeps (:class:`LruCache`): a paper-size
 diagnosis made ~3700 runs whose fields and derivatives, all kept, held ~3 GB."""
+
+BINS_CACHE_BYTES = 1 << 30
+"""Most bytes of binned points a process keeps (:func:`_binned`): a paper-size sequence's
+are ~0.4 GB by its point count, a 12 s one's a few MB."""
 
 
 def _run_bytes(run: "FieldRun") -> int:
     return int(sum(v.nbytes for f in dataclass_fields(run) if isinstance(v := getattr(run, f.name), np.ndarray)))
 
 
-class RunCache(OrderedDict):
-    """Field runs by key, least recently used first, at most ``limit`` bytes of arrays (the
-    most recent run always stays). A run dropped and asked for again is replayed: runs are
-    deterministic, so answers do not depend on the limit, only the simulation count does."""
+def _bins_bytes(hit) -> int:
+    """Bytes of a :func:`_binned` entry ``(clouds, (points, bins, counts))`` (the clouds are the caller's)."""
+    pts, idx, counts = hit[1]
+    return int(sum(p.nbytes for p in pts) + sum(i.nbytes for i in idx) + counts.nbytes)
 
-    def __init__(self, limit: int = RUNS_CACHE_BYTES):
+
+class LruCache(OrderedDict):
+    """Values by key, least recently used first, at most ``limit`` bytes as ``size(value)``
+    counts them and at most ``max_items`` values (the most recent always stays). Holds the
+    diagnosis's field runs and a worker's binned points: a value dropped and asked for
+    again is computed again, and both are deterministic, so answers do not depend on the
+    limits, only the work does."""
+
+    def __init__(self, limit: int, size, max_items: int | None = None):
         super().__init__()
-        self.limit, self.bytes = int(limit), 0
+        self.limit, self.size, self.max_items, self.bytes = int(limit), size, max_items, 0
 
     def get_recent(self, key):
-        """The run under ``key`` (marked recently used), or None."""
-        run = super().get(key)
-        if run is not None:
+        """The value under ``key`` (marked recently used), or None."""
+        value = super().get(key)
+        if value is not None:
             self.move_to_end(key)
-        return run
+        return value
 
-    def put(self, key, run: "FieldRun") -> None:
+    def put(self, key, value) -> None:
         if key in self:
-            self.bytes -= _run_bytes(self.pop(key))
-        self[key] = run
-        self.bytes += _run_bytes(run)
-        while self.bytes > self.limit and len(self) > 1:
+            self.bytes -= self.size(self.pop(key))
+        self[key] = value
+        self.bytes += self.size(value)
+        while len(self) > 1 and (self.bytes > self.limit or (self.max_items is not None and len(self) > self.max_items)):
             _, old = self.popitem(last=False)
-            self.bytes -= _run_bytes(old)
+            self.bytes -= self.size(old)
 
     def clear(self) -> None:
         super().clear()
         self.bytes = 0
 
 
-_BINS: dict = {}
-
-BINS_CACHE_BYTES = 1 << 30
-"""Most bytes of binned points a process keeps (:func:`_binned`; the oldest go first, the
-newest always stays): a paper-size sequence's are ~0.4 GB, a 12 s one's a few MB."""
-
-
-def _bins_bytes(binned) -> int:
-    pts, idx, counts = binned
-    return int(sum(p.nbytes for p in pts) + sum(i.nbytes for i in idx) + counts.nbytes)
+_BINS = LruCache(BINS_CACHE_BYTES, _bins_bytes, max_items=16)
 
 
 def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
@@ -191,14 +194,12 @@ def _binned(prepared: PreparedSession, name: str, layout: FieldLayout):
     16 sequences and :data:`BINS_CACHE_BYTES` kept)."""
     clouds = prepared.sequences[name].clouds
     key = (str(prepared.path), id(clouds), name, layout)
-    hit = _BINS.get(key)
+    hit = _BINS.get_recent(key)
     # the entry holds the clouds themselves: an id is reused once its object is freed (the
     # planner's virtual sequences share names and come and go)
     if hit is None or hit[0] is not clouds:
-        binned = frame_bins(clouds, layout)
-        hit = _BINS[key] = (clouds, binned, _bins_bytes(binned))
-        while len(_BINS) > 1 and (len(_BINS) > 16 or sum(h[2] for h in _BINS.values()) > BINS_CACHE_BYTES):
-            _BINS.pop(next(iter(_BINS)))
+        hit = (clouds, frame_bins(clouds, layout))
+        _BINS.put(key, hit)
     return hit[1]
 
 
@@ -288,7 +289,7 @@ class Evidence:
 
     def __init__(self, prepared: PreparedSession, cfg: DiagnosisConfig, executor: Executor, layout: FieldLayout):
         self.prepared, self.cfg, self.executor, self.layout = prepared, cfg, executor, layout
-        self.cache = RunCache()
+        self.cache = LruCache(RUNS_CACHE_BYTES, _run_bytes)
         self.delta: dict[str, np.ndarray] = {}
         self.force_delta: dict[str, np.ndarray] = {}
         self.force_ratio: dict[str, float] = {}

@@ -4,7 +4,7 @@ of runs): dropping a run costs a replay, never a different answer."""
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Evidence, RunCache, _run_bytes
+from core.diagnosis.evidence import Evidence, LruCache, _run_bytes
 from core.diagnosis.patches import field_layout
 from core.identification.execution import SerialExecutor
 from core.preparation import prepare_session
@@ -14,7 +14,7 @@ def _evidence(session, limit):
     prepared = prepare_session(session)
     cfg = DiagnosisConfig(fine_grid=None)
     ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
-    ev.cache = RunCache(limit)
+    ev.cache = LruCache(limit, _run_bytes)
     return ev
 
 
@@ -47,7 +47,7 @@ def test_the_least_recently_used_run_goes_first():
     from dataclasses import make_dataclass
 
     Run = make_dataclass("Run", [("a", np.ndarray)])
-    cache = RunCache(limit=3 * 800)
+    cache = LruCache(3 * 800, _run_bytes)
     for k in "abc":
         cache.put(k, Run(np.zeros(100)))
     assert cache.get_recent("a") is not None  # a is now the most recent
