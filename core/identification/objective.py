@@ -83,9 +83,8 @@ def _top_noise(prepared: PreparedSession, names, grid, element_size: float | Non
     """RMS signed residual (m) of rest frames against the rest mesh (the box grid's top
     face, or any mesh's upward surface): its noise level."""
     from core.identification.residuals import signed_residuals
-    from core.simulation.replay import replay_mesh
-
     from core.preparation import release_pages
+    from core.simulation.replay import replay_mesh
 
     mesh = replay_mesh(prepared, grid, element_size)
     res = []

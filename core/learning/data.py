@@ -211,6 +211,7 @@ def build_frames(
         SimulationError: bad simulation parameters. MeshingError: a bad ``phantom.stl``.
     """
     from core.io import read_session
+    from core.preparation import release_pages
     from core.simulation.replay import build_replay_model, replay_sequence
     names = list(prepared.sequences) if names is None else list(names)
     unknown = [n for n in names if n not in prepared.sequences]
@@ -226,6 +227,7 @@ def build_frames(
             sub = (lambda i_: (lambda f, msg: callback((i_ + f) / len(names), f"{name}: {msg}")))(i)
         r = replay_sequence(prepared, name, config, model=model, callback=sub)
         out[name] = frames_from_replay(prepared, r, config, session=session, mesh=model.mesh)
+        release_pages(prepared.sequences[name].clouds)  # done with them (mapped ones leave the resident set)
     if callback is not None:
         callback(1.0, "replayed")
     return out

@@ -223,7 +223,6 @@ def replay_sequence(
         errs, _ = frame_errors(sim.positions, model.mesh, seq.clouds, config.supersample, distances=False)
     else:
         errs = np.full(len(seq.clouds), np.nan)
-    release_pages(seq.clouds)  # done with this sequence's clouds (mapped ones leave the resident set)
     # the mean over every point of the sequence, from the frames' means and point counts
     counts = np.array([c.shape[0] for c in seq.clouds])
     seen = counts > 0
@@ -291,6 +290,7 @@ def replay(
     for i, name in enumerate(names):
         sub = _scaled(callback, 0.3 + 0.7 * i / len(names), 0.3 + 0.7 * (i + 1) / len(names))
         r = replay_sequence(prepared, name, config, model=model, callback=sub)
+        release_pages(prepared.sequences[name].clouds)  # done with them (mapped ones leave the resident set)
         sim_time += r.simulation.wall_time
         results[name] = r
     err_time = time.perf_counter() - t0 - sim_time
