@@ -54,22 +54,25 @@ def _smaps_rollup(pid: int) -> dict[str, int]:
     return out
 
 
-def tree_memory(proc: psutil.Process, children: bool = True) -> dict[str, int]:
-    """Memory in bytes of ``proc`` and all its descendants (those gone count 0).
+def tree_memory(proc: psutil.Process) -> tuple[dict[str, int], dict[str, int]]:
+    """Memory in bytes of ``proc`` and, apart, of all its descendants (those gone count 0),
+    each process read once.
 
-    Returns ``{"rss": resident, "pss": proportional, "anon": anonymous}``. Resident counts
-    every mapped page in every process that maps it, so the cleaned clouds a command and
-    its Dask workers all memory-map (read-only page cache, dropped under pressure) are
-    counted once per process; the proportional set size counts a shared page once in all;
-    anonymous memory is the private heap that cannot be dropped without swap. Without
-    ``smaps_rollup`` (not Linux) pss and anon equal rss.
+    Returns ``(command, descendants)``, each ``{"rss": resident, "pss": proportional,
+    "anon": anonymous}``. Resident counts every mapped page in every process that maps
+    it, so the cleaned clouds a command and its Dask workers all memory-map (read-only
+    page cache, dropped under pressure) are counted once per process; the proportional set
+    size counts a shared page once in all; anonymous memory is the private heap that
+    cannot be dropped without swap. Without ``smaps_rollup`` (not Linux) pss and anon
+    equal rss.
     """
-    total = {"rss": 0, "pss": 0, "anon": 0}
+    parts = ({"rss": 0, "pss": 0, "anon": 0}, {"rss": 0, "pss": 0, "anon": 0})
     try:
-        procs = [proc, *proc.children(recursive=True)] if children else [proc]
+        procs = [proc, *proc.children(recursive=True)]
     except psutil.Error:
-        return total
-    for p in procs:
+        return parts
+    for i, p in enumerate(procs):
+        total = parts[min(i, 1)]
         try:
             rss = p.memory_info().rss
             try:
@@ -81,12 +84,7 @@ def tree_memory(proc: psutil.Process, children: bool = True) -> dict[str, int]:
             total["anon"] += roll.get("Anonymous", rss)
         except psutil.Error:
             pass
-    return total
-
-
-def tree_rss(proc: psutil.Process) -> int:
-    """Resident memory in bytes of ``proc`` and all its descendants (0 for those gone)."""
-    return tree_memory(proc)["rss"]
+    return parts
 
 
 def run_measured(cmd: list[str], env: dict, log: Path, series: Path | None = None) -> tuple[float, dict[str, int], int]:
@@ -112,15 +110,14 @@ def run_measured(cmd: list[str], env: dict, log: Path, series: Path | None = Non
         def sample():
             last = -1.0
             while not stop.is_set():
-                for k, v in tree_memory(proc).items():
-                    peak[k] = max(peak[k], v)
+                main, workers = tree_memory(proc)
+                for k in peak:
+                    peak[k] = max(peak[k], main[k] + workers[k])
                 now = time.perf_counter() - t0
                 if rows and now - last >= 1.0:
                     last = now
-                    main = tree_memory(proc, children=False)
-                    both = tree_memory(proc)
                     rows.write(f"{now:.1f}," + ",".join(str(main[k]) for k in ("rss", "pss", "anon")) + ","
-                               + ",".join(str(both[k] - main[k]) for k in ("rss", "pss", "anon")) + "\n")
+                               + ",".join(str(workers[k]) for k in ("rss", "pss", "anon")) + "\n")
                     rows.flush()
                 stop.wait(0.2)
 
