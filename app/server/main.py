@@ -15,7 +15,7 @@ from app.server import db as dbm
 from app.server.api.routes import job_types, jobs, sessions, system, viewer
 from app.server.errors import JSONTooLarge, install_error_handlers
 from app.server.jobs.registry import Registry
-from app.server.jobs.runner import JobRunner
+from app.server.jobs.runner import JobRunner, warm_imports
 from app.server.settings import Settings
 
 __all__ = ["create_app", "STATIC_DIR", "UPLOAD_OVERHEAD"]
@@ -102,7 +102,8 @@ def _viewer_callbacks(factory):
 
 def create_app(settings: Settings | None = None, registry: Registry | None = None) -> FastAPI:
     """Build the workbench app. Start-up (in the lifespan): create the data folders and
-    tables, mark jobs a previous server left behind ``interrupted``, start the Dask
+    tables, mark jobs a previous server left behind ``interrupted``, import ``core``
+    (:func:`app.server.jobs.runner.warm_imports`), start the Dask
     runner and (``settings.viewer``) the viser viewer; shut-down stops both. Request
     bodies are limited while they stream in: ``settings.max_body_bytes`` for JSON routes,
     ``settings.max_upload_bytes`` (+ :data:`UPLOAD_OVERHEAD`) for the zip upload.
@@ -127,6 +128,7 @@ def create_app(settings: Settings | None = None, registry: Registry | None = Non
         n = dbm.mark_interrupted(factory)
         if n:
             log.warning("%d job(s) of a previous server marked interrupted", n)
+        warm_imports()  # request threads validate job parameters with ``core`` (see WARM_IMPORTS)
         runner = JobRunner(settings, factory, registry)
         runner.start()
         if runner.cancel_orphans(orphans):

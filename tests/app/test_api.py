@@ -316,10 +316,11 @@ def test_a_worker_crash_fails_only_its_job(client, session_id):
     crash = submit(client, "crash")
     other = submit(client, "sweep", session_id=session_id, youngs=[1e4], sequences=["seq03"])
     crashed = wait(client, crash["id"])
-    assert crashed["status"] == "failed" and "worker crashed" in crashed["error"]
-    assert wait(client, other["id"])["status"] == "done"
-    after = submit(client, "sweep", session_id=session_id, youngs=[1e4], sequences=["seq03"])
-    assert wait(client, after["id"])["status"] == "done"  # the cluster still works
+    assert crashed["status"] == "failed" and "worker crashed" in crashed["error"], crashed
+    other = wait(client, other["id"])
+    assert other["status"] == "done", other
+    after = wait(client, submit(client, "sweep", session_id=session_id, youngs=[1e4], sequences=["seq03"])["id"])
+    assert after["status"] == "done", after  # the cluster still works
 
 
 # ------------------------------------------------------------------ replay + viewer

@@ -26,6 +26,7 @@ import pytest
 from sqlalchemy import inspect, select, text
 
 from app.server import db as dbm
+from app.server.jobs.runner import WARM_IMPORTS
 from app.server.errors import Invalid
 from tests.app.test_server import Server, _free_port, _wait
 
@@ -347,7 +348,10 @@ def test_compose_setup_without_docker(small_session, postgres, pg_database, tmp_
             # the jobs ran on this cluster's two workers (tt-<job id>-<uuid>-job tasks)
             prefixes = client.run_on_scheduler(lambda dask_scheduler: sorted(dask_scheduler.task_prefixes))
             workers = sorted(w["name"] for w in client.scheduler_info()["workers"].values())
+            # the server's plugin imported core on each worker before its jobs (see WARM_IMPORTS)
+            missing = client.run(lambda: [m for m in WARM_IMPORTS if m not in sys.modules])
         assert workers == ["worker-1", "worker-2"]
+        assert list(missing.values()) == [[], []], missing
         assert "tt" in prefixes, prefixes
     finally:
         cluster.stop()

@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 from app.server import db as dbm
 from app.server.jobs.registry import Registry
-from app.server.jobs.runner import JobRunner, quiet_client_gc
+from app.server.jobs.runner import WARM_IMPORTS, JobRunner, quiet_client_gc
 from app.server.settings import Settings
 
 
@@ -32,13 +32,17 @@ def test_the_closed_loop_noise_is_dropped_and_everything_else_is_kept(monkeypatc
     assert seen == [other_object, other_error]
 
 
-def test_the_local_workers_run_the_filter(tmp_path):
+def test_the_local_workers_run_the_filter_and_import_core_first(tmp_path):
+    """Both worker plugins ran: the shutdown-noise filter, and core imported before any
+    job (two job threads importing core at once handed one a half-run module)."""
     engine = dbm.make_engine(f"sqlite:///{tmp_path / 'db.sqlite'}")
     runner = JobRunner(Settings(data_dir=str(tmp_path), workers=1), dbm.make_sessionmaker(engine), Registry())
     runner.start()
     try:
         flags = runner.client.run(lambda: bool(getattr(sys.unraisablehook, "_tissuetwin_quiet", False)))
         assert list(flags.values()) == [True]
+        missing = runner.client.run(lambda: [m for m in WARM_IMPORTS if m not in sys.modules])
+        assert list(missing.values()) == [[]]
     finally:
         runner.close()
         engine.dispose()

@@ -25,12 +25,16 @@ class JobType:
             summary key ``"register_session"`` (``{"path", "name"}``) registers a new session.
             Must be a module-level function (it is pickled to a Dask worker).
         title: one line for the dashboard.
+        imports: ``core`` packages the job needs beyond
+            :data:`app.server.jobs.runner.WARM_IMPORTS` (``("core.learning",)``), imported
+            one thread at a time before it runs (see there why).
     """
 
     name: str
     params: type[BaseModel]
     run: Callable[[Any, JobContext], dict]
     title: str = ""
+    imports: tuple[str, ...] = ()
 
     @property
     def needs_session(self) -> bool:

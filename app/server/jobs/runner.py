@@ -38,9 +38,38 @@ from app.server.jobs.context import DaskChannel, JobCancelled, JobContext, Worke
 from app.server.jobs.registry import Registry
 from app.server.settings import Settings
 
-__all__ = ["execute_job", "JobRunner", "quiet_client_gc"]
+__all__ = ["execute_job", "JobRunner", "quiet_client_gc", "warm_imports", "WARM_IMPORTS"]
 
 log = logging.getLogger(__name__)
+
+WARM_IMPORTS = ("core.io", "core.registration", "core.preparation", "core.simulation", "core.identification",
+                "core.lab", "core.diagnosis")
+"""The ``core`` packages every process running jobs imports once, in this order, at start.
+
+Why: the job functions and the trial tasks import ``core`` lazily, and a worker runs
+several of them on threads at once (a sweep secedes while its trials and the next job
+run). CPython's import locks take a submodule's lock before its package's, so two
+threads importing different submodules of a package that is not loaded yet can
+deadlock; the import system breaks that by handing one of them the partially run
+module (CI saw ``cannot import name 'Clouds' from partially initialized module
+'core.preparation.prepared'`` in a sweep submitted together with eleven others).
+Importing the packages in one thread before any job runs leaves nothing to race.
+``core.learning`` (torch, about 90 MB) is not here: the job types that need it name it
+(:attr:`app.server.jobs.registry.JobType.imports`)."""
+
+_import_lock = threading.Lock()
+
+
+def warm_imports(extra: tuple[str, ...] = ()) -> None:
+    """Import :data:`WARM_IMPORTS` and ``extra`` (module names), one thread at a time.
+
+    Idempotent and cheap once done (about 0.5 s the first time). Raises ImportError as
+    ``import`` does."""
+    import importlib
+
+    with _import_lock:
+        for name in WARM_IMPORTS + tuple(extra):
+            importlib.import_module(name)
 
 
 def quiet_client_gc() -> None:
@@ -80,9 +109,25 @@ def _quiet_worker_plugin():
     return QuietShutdown()
 
 
+def _warm_imports_plugin():
+    """A WorkerPlugin that runs :func:`warm_imports` in each worker before it runs a task
+    (workers present at registration and any that join or restart later)."""
+    from distributed.diagnostics.plugin import WorkerPlugin
+
+    class WarmImports(WorkerPlugin):
+        name = "tissuetwin-warm-imports"
+
+        def setup(self, worker):
+            warm_imports()
+
+    return WarmImports()
+
+
 def execute_job(token: str, job_id: int, run, params_cls, params: dict, artifact_dir: str,
-                session_path: str | None, picked, interval: float) -> dict:
-    """The Dask task of one job: validate the parameters, run, return the summary.
+                session_path: str | None, picked, interval: float, imports: tuple[str, ...] = ()) -> dict:
+    """The Dask task of one job: import what it needs, validate the parameters, run,
+    return the summary. ``imports``: ``core`` packages beyond :data:`WARM_IMPORTS` that the
+    job type needs, imported under :func:`warm_imports`'s lock before the job runs.
 
     Raises:
         WorkerCrashed: this is a re-run after the worker running it died.
@@ -96,6 +141,7 @@ def execute_job(token: str, job_id: int, run, params_cls, params: dict, artifact
         raise WorkerCrashed("the worker running this job died (process crash or out of memory); not retried")
     channel.started_event.set()
     channel.send("started", time.time())
+    warm_imports(imports)  # a no-op where the worker plugin already ran, bar ``imports``
     ctx = JobContext(
         job_id=job_id, artifact_dir=Path(artifact_dir), channel=channel,
         session_path=Path(session_path) if session_path else None,
@@ -165,6 +211,7 @@ class JobRunner:
         address = self.settings.scheduler
         if address:
             self.client = Client(address)
+            self.client.register_plugin(_warm_imports_plugin())
             return
         # non-daemonic workers: jobs may start processes (the virtual lab's simulation pool);
         # workers that ignore Ctrl-C: the server alone handles it and closes the cluster
@@ -180,6 +227,7 @@ class JobRunner:
         self.client = Client(self.cluster)
         quiet_client_gc()
         self.client.register_plugin(_quiet_worker_plugin())
+        self.client.register_plugin(_warm_imports_plugin())
 
     def close(self) -> None:
         """Stop monitoring, mark unfinished jobs interrupted, close the client and cluster."""
@@ -204,7 +252,8 @@ class JobRunner:
                 rec.dask_token = token
         future = self.client.submit(
             execute_job, token, job.id, job_type.run, job_type.params, job.params, job.artifact_dir,
-            session_path, picked, self.settings.progress_interval, key=f"{token}-job", pure=False, retries=0,
+            session_path, picked, self.settings.progress_interval, job_type.imports, key=f"{token}-job", pure=False,
+            retries=0,
         )
         with self._lock:
             self._futures[job.id] = future

@@ -459,6 +459,8 @@ def default_registry() -> Registry:
         JobType("fit", FitParams, run_fit, "fit Young's modulus with a 95 % interval"),
         JobType("diagnose", DiagnoseParams, run_diagnose, "name what the simulation lacks and what fixing it gains"),
         JobType("plan", PlanParams, run_plan, "the palpation that would tell what the diagnosis could not"),
-        JobType("train", TrainParams, run_train, "train the 2D/3D correction network and test it (Sec. 3.3)"),
-        JobType("evaluate", EvaluateParams, run_evaluate, "Table 3: both networks at the identified E, too stiff, 10 Pa"),
+        JobType("train", TrainParams, run_train, "train the 2D/3D correction network and test it (Sec. 3.3)",
+                ("core.learning",)),
+        JobType("evaluate", EvaluateParams, run_evaluate, "Table 3: both networks at the identified E, too stiff, 10 Pa",
+                ("core.learning",)),
     ])
