@@ -141,7 +141,8 @@ diagnosis made ~3700 runs whose fields and derivatives, all kept, held ~3 GB."""
 
 BINS_CACHE_BYTES = 1 << 30
 """Most bytes of binned points a process keeps (:func:`_binned`): a paper-size sequence's
-are ~0.4 GB by its point count, a 12 s one's a few MB."""
+indices and bins are ~0.16 GB by its point count (:func:`fields.frame_bins`), a 12 s
+one's a few MB."""
 
 
 def _run_bytes(run: "FieldRun") -> int:
@@ -151,7 +152,7 @@ def _run_bytes(run: "FieldRun") -> int:
 def _bins_bytes(hit) -> int:
     """Bytes of a :func:`_binned` entry ``(clouds, (points, bins, counts))`` (the clouds are the caller's)."""
     pts, idx, counts = hit[1]
-    return int(sum(p.nbytes for p in pts) + sum(i.nbytes for i in idx) + counts.nbytes)
+    return int(pts.nbytes + sum(i.nbytes for i in idx) + counts.nbytes)
 
 
 class LruCache(OrderedDict):

@@ -39,6 +39,33 @@ def test_flat_surface_field_is_the_offset_and_the_scatter_is_the_noise():
     assert np.sqrt(ss[0] / dof[0]) == pytest.approx(sigma, rel=0.03) and ss[1:].sum() == 0 == dof[1:].sum()
 
 
+def test_binned_points_are_read_from_the_clouds_and_give_the_same_field():
+    """frame_bins keeps indices into the clouds (4 bytes a point) and int16 bins (2), not
+    copies: each frame's kept points are exactly the clouds' in-bin points, and the field
+    from them equals the field from materialised copies."""
+    rng = np.random.default_rng(3)
+    lay = FieldLayout(SIZE, (8, 4), side_rows=2)
+    rest = box_mesh(SIZE, GRID).nodes
+    clouds = [np.column_stack([rng.uniform(-0.005, SIZE[0] + 0.005, 3000), rng.uniform(-0.005, SIZE[1] + 0.005, 3000),
+                               SIZE[2] + 3e-4 * rng.standard_normal(3000)]).astype(np.float32) for _ in range(4)]
+    clouds[2] = clouds[2][:0]  # a frame with no points
+    pts, bins, counts = frame_bins(clouds, lay)
+    copies = []
+    for f, c in enumerate(clouds):
+        inside = lay.index(c) >= 0
+        assert np.array_equal(pts[f], c[inside]) and pts[f].dtype == np.float32
+        assert np.array_equal(bins[f], lay.index(c)[inside]) and bins[f].dtype == np.int16
+        copies.append(c[inside].copy())
+    n = sum(len(b) for b in bins)
+    assert n > 3000 and pts.nbytes == 4 * n and sum(b.nbytes for b in bins) == 2 * n
+    moved = np.repeat(rest[None], 4, axis=0) + 2e-4 * rng.standard_normal((4,) + rest.shape)
+    a = residual_field(moved, GRID, lay, pts, bins, counts)
+    b = residual_field(moved, GRID, lay, copies, [x.astype(np.int32) for x in bins], counts)
+    for x, y in zip(a, b):
+        assert np.array_equal(x, y)
+    assert np.all(a[0][2] == 0) and np.any(a[0][0] != 0)
+
+
 def test_side_faces_have_their_own_bins_sign_and_noise():
     """A box whose +x face sits 0.5 mm out and whose -y face sits 0.3 mm in, each with its
     own noise: the side bins read +0.5 / -0.3 mm (outward positive), the top 0, and each
