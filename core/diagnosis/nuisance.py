@@ -42,6 +42,7 @@ E); the mesh direction, which needs fine-grid runs, is taken at the base model o
 
 from __future__ import annotations
 
+import copy
 import itertools
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -416,5 +417,12 @@ class Nuisance:
         tol_lo = 1e-9 * np.where(np.isfinite(self.lower), np.abs(self.lower), 0.0)
         tol_hi = 1e-9 * np.where(np.isfinite(self.upper), np.abs(self.upper), 0.0)
         inside = (c > self.lower + tol_lo) & (c < self.upper - tol_hi)
+        if inside.all():
+            # the same columns unbounded: share the arrays and their SVD (a paper-size
+            # round held a second copy of both, ~0.2 GB)
+            free = copy.copy(self)
+            object.__setattr__(free, "lower", np.full(self.size, -np.inf))
+            object.__setattr__(free, "upper", np.full(self.size, np.inf))
+            return free
         return Nuisance(self.train[:, inside], self.validation[:, inside], tuple(n for n, i in zip(self.names, inside) if i),
                         np.full(int(inside.sum()), -np.inf), np.full(int(inside.sum()), np.inf))

@@ -167,6 +167,25 @@ def test_bounded_nuisance_absorbs_a_small_offset_but_not_a_large_one(offset_mm, 
         np.testing.assert_allclose(left, (offset_mm - 0.2) * 1e-3, rtol=1e-9)
 
 
+def test_active_directions_drop_the_bound_ones_and_share_arrays_when_none_is():
+    """active(): the directions inside their bounds, unbounded. With none at a bound it is
+    the same columns (shared, not copied) and projects as a fresh unbounded nuisance does;
+    with one at its bound that column is dropped."""
+    rng = np.random.default_rng(11)
+    N_t, N_v = rng.standard_normal((400, 3)), rng.standard_normal((200, 3))
+    r = N_t @ np.array([0.5, -0.2, 0.1]) + 0.01 * rng.standard_normal(400)
+    nuis = Nuisance(N_t, N_v, ("a", "b", "c"), np.full(3, -1.0), np.full(3, 1.0))
+    free = nuis.active(r)
+    assert free.train is nuis.train and free.validation is nuis.validation and free.names == nuis.names
+    assert np.all(np.isinf(free.lower)) and np.all(np.isinf(free.upper)) and np.all(nuis.upper == 1.0)
+    fresh = Nuisance(N_t.copy(), N_v.copy(), ("a", "b", "c"), np.full(3, -np.inf), np.full(3, np.inf))
+    far = 3.0 * r  # coefficients 1.5, -0.6, 0.3: the first beyond its bound of 1
+    np.testing.assert_allclose(free.project(far), fresh.project(far), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(free.held_out(far[:200], far), fresh.held_out(far[:200], far), rtol=0, atol=1e-12)
+    clipped = nuis.active(far)
+    assert clipped.names == ("b", "c") and clipped.train.shape == (400, 2)
+
+
 def _channels(rng, n_blocks=12, per_block=30, rho=0.5):
     """Block-correlated unit noise on two channels of equal length, their masks and blocks."""
     x = np.empty((2 * n_blocks, per_block))
