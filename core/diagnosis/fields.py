@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from core.preparation import release_pages
 from core.preparation.shape import BoxShape, RestShape
 
 
@@ -372,9 +373,12 @@ def _chunks(points, bins, use: np.ndarray):
             k += len(bins[use[stop]])
             stop += 1
         frames = use[start:stop]
-        yield (np.concatenate([np.full(len(bins[f]), f, dtype=np.int64) for f in frames]),
-               np.concatenate([np.asarray(points[f], dtype=np.float64) for f in frames]),
-               np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in frames]))
+        chunk = (np.concatenate([np.full(len(bins[f]), f, dtype=np.int64) for f in frames]),
+                 np.concatenate([np.asarray(points[f], dtype=np.float64) for f in frames]),
+                 np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in frames]))
+        if isinstance(points, KeptPoints):
+            points.release()  # the chunk is copied out: its mapped pages can go
+        yield chunk
         start = stop
 
 
@@ -407,6 +411,11 @@ class KeptPoints(SequenceABC):
     @property
     def nbytes(self) -> int:
         return int(sum(k.nbytes for k in self.kept))
+
+    def release(self) -> bool:
+        """Drop the clouds' mapped pages from the resident set
+        (:func:`core.preparation.release_pages`); True when pages were released."""
+        return release_pages(self.clouds)
 
 
 def frame_bins(clouds, layout: FieldLayout) -> tuple[KeptPoints, list[np.ndarray], np.ndarray]:

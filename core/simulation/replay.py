@@ -173,6 +173,11 @@ def noise_floor(prepared: PreparedSession, grid=(13, 5, 5), factor: int = 3, *,
     return total / count if count else float("nan")
 
 
+RELEASE_FRAMES = 256
+""":func:`frame_errors` releases mapped clouds' pages every this many frames: one pass over
+a paper-size sequence otherwise leaves all of its ~0.3 GB resident in the process."""
+
+
 def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], factor: int = 3, *,
                  distances: bool = True):
     """Per-frame mean and per-point distances from clouds to the super-sampled mesh.
@@ -183,6 +188,7 @@ def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], fact
         clouds: F arrays (M_f, 3) of measured points, m, same frame.
         distances: keep the per-point distances (False: only the per-frame means, so a
             paper-size sequence of 3600 frames does not hold ~1 GB of float64 distances).
+            Memory-mapped clouds have their pages released every :data:`RELEASE_FRAMES`.
 
     Returns:
         (frame_mean (F,) m, distances: list of (M_f,) arrays in m, or None without
@@ -191,6 +197,8 @@ def frame_errors(positions: np.ndarray, grid, clouds: Sequence[np.ndarray], fact
     means = np.full(len(clouds), np.nan)
     dists = [] if distances else None
     for f, pts in enumerate(clouds):
+        if f and f % RELEASE_FRAMES == 0:
+            release_pages(clouds)
         if not np.all(np.isfinite(positions[f])) or pts.shape[0] == 0:
             if distances:
                 dists.append(np.full(pts.shape[0], np.nan))
