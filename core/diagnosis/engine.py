@@ -520,10 +520,20 @@ def diagnose_prepared(
                             small=small)
         lap("detectability")
 
+    # the fields the report shows on train and validation (the fine grid's runs of the
+    # refits), taken now: the runs cache is then emptied, since the test stage replays
+    # only test sequences (a paper-size diagnosis held 0.5 GiB of runs through it)
+    base_spec = ev.spec([], E_base)
+    ext_spec = ev.spec(ext_effects, E_ext) if claimed else base_spec
+    base_train = ev.runs([base_spec], "train", fine=True)[0]
+    base_val = ev.runs([base_spec], "validation", fine=True)[0]
+    ext_train = ev.runs([ext_spec], "train", fine=True)[0]
+    ext_val = ev.runs([ext_spec], "validation", fine=True)[0]
+    ev.cache.clear()
+
     # test errors: base, each cause alone, extended
     say(0.9, "measuring the gain on the test sequences")
     test_blocks = ev.frame_blocks("test")
-    base_spec = ev.spec([], E_base)
     base_test = ev.runs([base_spec], "test", paper=True, fine=True)[0]
     b_err, b_s, b_c = test_error(base_test)
     ext_runs = ev.runs([ev.spec(ext_effects, E_ext)], "test", paper=True, fine=True)[0]
@@ -547,9 +557,6 @@ def diagnose_prepared(
     causes.sort(key=lambda c: -(c.gain or 0.0) - (c.force_gain or 0.0))
     reports = [next((c for c in causes if c.kind == r.kind and r.claimed), r) for r in reports]
 
-    ext_spec = ev.spec(ext_effects, E_ext) if claimed else base_spec
-    ext_train = ev.runs([ext_spec], "train", fine=True)[0]
-    ext_val = ev.runs([ext_spec], "validation", fine=True)[0]
     lap("test")
     timings["total"] = time.perf_counter() - t0
     say(1.0, "done")
@@ -562,7 +569,7 @@ def diagnose_prepared(
         summary=dict(summary(ev, all_base, sigma2, prepared),
                      validation_bin_frames=int(sum((ev.counts[n][:, :layout.top_bins] > 0).sum() for n in ev.names["validation"])),
                      noise_by_face_m={f: math.sqrt(face_sigma2[NOISE_GROUPS.index(f)]) for f in layout.faces()}),
-        base_fields={r.sequence: r for r in ev.runs([base_spec], "train", fine=True)[0] + ev.runs([base_spec], "validation", fine=True)[0] + base_test},
+        base_fields={r.sequence: r for r in base_train + base_val + base_test},
         extended_fields={r.sequence: r for r in ext_train + ext_val + ext_runs},
         layout=layout, timings=timings, simulations=ev.simulations,
         force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=tuple(dict.fromkeys(last.nuisance.names)) if last else (),
