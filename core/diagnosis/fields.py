@@ -23,18 +23,18 @@ points has variance ``sigma^2 / n`` under noise alone.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence as SequenceABC
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
 
-from core.preparation import release_pages
+from core.diagnosis.field_kernels import (box_field, box_field_tangent, face_geometry, face_residuals_kernel,
+                                          face_residuals_tangent_kernel)
+from core.preparation import Clouds, release_pages
 from core.preparation.shape import BoxShape, RestShape
 
 
-__all__ = ["FieldLayout", "FACES", "NOISE_GROUPS", "face_residuals", "face_residuals_tangent", "frame_bins", "KeptPoints", "residual_field",
+__all__ = ["FieldLayout", "FACES", "NOISE_GROUPS", "face_residuals", "face_residuals_tangent", "frame_bins", "KeptPoints", "Ragged", "residual_field",
            "residual_field_tangent", "phase_labels", "PHASES"]
 
 PHASES = ("rest", "loading", "holding", "unloading", "sliding")
@@ -220,50 +220,15 @@ def face_residuals(points: np.ndarray, positions: np.ndarray, grid, size, face: 
         (M,) ``(p - model) . n`` for the face's outward normal ``n``: the point's normal
         coordinate minus the model face's, bilinear in the face's deformed nodes (cells
         located on the rest grid, in-plane node motion corrected to first order), as
-        ``top_residuals`` does for the top.
+        ``top_residuals`` does for the top (:func:`core.diagnosis.field_kernels._point_residual`).
     """
-    axis, high = _FACE_AXIS[face]
-    u, v = [a for a in (0, 1, 2) if a != axis]
-    g = [int(n) for n in grid]
-    pos = np.asarray(positions, dtype=np.float64)
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
     if pos.ndim == 2:
         pos = pos[None]
         frames = np.zeros(len(points), dtype=np.int64)
-    nodes = pos.reshape(pos.shape[0], g[0], g[1], g[2], 3)
-    sl = [slice(None)] * 4
-    sl[1 + axis] = -1 if high else 0
-    fn = np.ascontiguousarray(nodes[tuple(sl)])  # (F, n_u, n_v, 3): the remaining axes keep their order u < v
-    p = np.ascontiguousarray(points, dtype=np.float64)
-    r = _face_residuals(p, fn, np.asarray(frames, dtype=np.int64), u, v, axis, float(size[u]), float(size[v]))
-    return r if high else -r
-
-
-@njit(cache=True)
-def _face_residuals(p, fn, f, u, v, axis, su, sv):
-    """The bilinear face interpolation of :func:`face_residuals`, compiled: per point, the
-    in-plane motion of its rest cell corrected to first order, then the normal residual."""
-    nu, nv = fn.shape[1], fn.shape[2]
-    hu, hv = su / (nu - 1), sv / (nv - 1)
-    out = np.empty(p.shape[0])
-    for m in range(p.shape[0]):
-        fr = f[m]
-        pu, pv = p[m, u], p[m, v]
-        i = min(max(int(math.floor(pu / hu)), 0), nu - 2)
-        j = min(max(int(math.floor(pv / hv)), 0), nv - 2)
-        wa, wb = pu / hu - i, pv / hv - j
-        w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
-        du = (w00 * (fn[fr, i, j, u] - i * hu) + w10 * (fn[fr, i + 1, j, u] - (i + 1) * hu)
-              + w01 * (fn[fr, i, j + 1, u] - i * hu) + w11 * (fn[fr, i + 1, j + 1, u] - (i + 1) * hu))
-        dv = (w00 * (fn[fr, i, j, v] - j * hv) + w10 * (fn[fr, i + 1, j, v] - j * hv)
-              + w01 * (fn[fr, i, j + 1, v] - (j + 1) * hv) + w11 * (fn[fr, i + 1, j + 1, v] - (j + 1) * hv))
-        a, b = pu - du, pv - dv
-        i = min(max(int(math.floor(a / hu)), 0), nu - 2)
-        j = min(max(int(math.floor(b / hv)), 0), nv - 2)
-        wa, wb = a / hu - i, b / hv - j
-        z = ((1 - wa) * (1 - wb) * fn[fr, i, j, axis] + wa * (1 - wb) * fn[fr, i + 1, j, axis]
-             + (1 - wa) * wb * fn[fr, i, j + 1, axis] + wa * wb * fn[fr, i + 1, j + 1, axis])
-        out[m] = p[m, axis] - z
-    return out
+    gi, gf = face_geometry(grid, size)
+    return face_residuals_kernel(np.ascontiguousarray(points, dtype=np.float64), pos,
+                                 np.asarray(frames, dtype=np.int64), gi, gf, FACES.index(face))
 
 
 def face_residuals_tangent(points: np.ndarray, positions: np.ndarray, dpositions: np.ndarray, grid, size,
@@ -278,139 +243,145 @@ def face_residuals_tangent(points: np.ndarray, positions: np.ndarray, dpositions
         (p, M) d residual, m per unit of each direction (the points' cells held, as the
         residual is bilinear within them).
     """
-    axis, high = _FACE_AXIS[face]
-    u, v = [a for a in (0, 1, 2) if a != axis]
-    g = [int(n) for n in grid]
-    pos = np.asarray(positions, dtype=np.float64)
-    dpos = np.asarray(dpositions, dtype=np.float64)
-    nodes = pos.reshape(pos.shape[0], g[0], g[1], g[2], 3)
-    dnodes = dpos.reshape(dpos.shape[0], dpos.shape[1], g[0], g[1], g[2], 3)
-    sl = [slice(None)] * 4
-    sl[1 + axis] = -1 if high else 0
-    fn = np.ascontiguousarray(nodes[tuple(sl)])
-    dfn = np.ascontiguousarray(dnodes[(slice(None),) + tuple(sl)])
-    p = np.ascontiguousarray(points, dtype=np.float64)
-    dr = _face_residuals_tangent(p, fn, dfn, np.asarray(frames, dtype=np.int64), u, v, axis, float(size[u]),
-                                 float(size[v]))
-    return dr if high else -dr
-
-
-@njit(cache=True)
-def _face_residuals_tangent(p, fn, dfn, f, u, v, axis, su, sv):
-    nu, nv = fn.shape[1], fn.shape[2]
-    hu, hv = su / (nu - 1), sv / (nv - 1)
-    n_dir = dfn.shape[0]
-    out = np.empty((n_dir, p.shape[0]))
-    for m in range(p.shape[0]):
-        fr = f[m]
-        pu, pv = p[m, u], p[m, v]
-        i = min(max(int(math.floor(pu / hu)), 0), nu - 2)
-        j = min(max(int(math.floor(pv / hv)), 0), nv - 2)
-        wa, wb = pu / hu - i, pv / hv - j
-        w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
-        du = (w00 * (fn[fr, i, j, u] - i * hu) + w10 * (fn[fr, i + 1, j, u] - (i + 1) * hu)
-              + w01 * (fn[fr, i, j + 1, u] - i * hu) + w11 * (fn[fr, i + 1, j + 1, u] - (i + 1) * hu))
-        dv = (w00 * (fn[fr, i, j, v] - j * hv) + w10 * (fn[fr, i + 1, j, v] - j * hv)
-              + w01 * (fn[fr, i, j + 1, v] - (j + 1) * hv) + w11 * (fn[fr, i + 1, j + 1, v] - (j + 1) * hv))
-        a, b = pu - du, pv - dv
-        i2 = min(max(int(math.floor(a / hu)), 0), nu - 2)
-        j2 = min(max(int(math.floor(b / hv)), 0), nv - 2)
-        wa2, wb2 = a / hu - i2, b / hv - j2
-        f00, f10 = fn[fr, i2, j2, axis], fn[fr, i2 + 1, j2, axis]
-        f01, f11 = fn[fr, i2, j2 + 1, axis], fn[fr, i2 + 1, j2 + 1, axis]
-        dz_dwa = (1 - wb2) * (f10 - f00) + wb2 * (f11 - f01)
-        dz_dwb = (1 - wa2) * (f01 - f00) + wa2 * (f11 - f10)
-        for t in range(n_dir):
-            ddu = (w00 * dfn[t, fr, i, j, u] + w10 * dfn[t, fr, i + 1, j, u] + w01 * dfn[t, fr, i, j + 1, u]
-                   + w11 * dfn[t, fr, i + 1, j + 1, u])
-            ddv = (w00 * dfn[t, fr, i, j, v] + w10 * dfn[t, fr, i + 1, j, v] + w01 * dfn[t, fr, i, j + 1, v]
-                   + w11 * dfn[t, fr, i + 1, j + 1, v])
-            dz = ((1 - wa2) * (1 - wb2) * dfn[t, fr, i2, j2, axis] + wa2 * (1 - wb2) * dfn[t, fr, i2 + 1, j2, axis]
-                  + (1 - wa2) * wb2 * dfn[t, fr, i2, j2 + 1, axis] + wa2 * wb2 * dfn[t, fr, i2 + 1, j2 + 1, axis]
-                  - dz_dwa * ddu / hu - dz_dwb * ddv / hv)
-            out[t, m] = -dz
-    return out
+    gi, gf = face_geometry(grid, size)
+    return face_residuals_tangent_kernel(np.ascontiguousarray(points, dtype=np.float64),
+                                         np.ascontiguousarray(positions, dtype=np.float64),
+                                         np.ascontiguousarray(dpositions, dtype=np.float64),
+                                         np.asarray(frames, dtype=np.int64), gi, gf, FACES.index(face))
 
 
 def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, layout: FieldLayout, points, bins,
                            counts) -> np.ndarray:
     """Derivatives (p, F, B) of :func:`residual_field`'s bin means along p directions of the
-    node positions (``dpositions`` (p, F, N, 3)); zero where a bin is empty or a frame
-    diverged."""
+    node positions (``dpositions`` (p, F, N, 3)), m per unit of each direction; zero where a
+    bin is empty or a frame diverged. Arguments as :func:`residual_field`."""
     F, B = counts.shape
     n_dir = dpositions.shape[0]
     out = np.zeros((n_dir, F, B))
-    pos = np.asarray(positions, dtype=np.float64)
-    ok = np.array([len(bins[f]) > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    ok = _ok_frames(pos, bins)
     if not np.any(ok) or n_dir == 0:
+        return out
+    if isinstance(layout, FieldLayout):
+        dpos = np.ascontiguousarray(dpositions, dtype=np.float64)
+        flat = _flat(points, bins)
+        gi, gf = face_geometry(grid, layout.size)
+        for frames in _blocks(flat.kstart, np.flatnonzero(ok)):
+            box_field_tangent(flat.points, flat.cstart, flat.kept, flat.kstart, flat.bins, frames, pos, dpos,
+                              layout.face_of_bin(), gi, gf, counts, out)
+            flat.release()
         return out
     n = np.where(ok[:, None], counts, 0).astype(np.float64)
     sums = np.zeros((n_dir, F * B))
     for fr, pts, bn in _chunks(points, bins, np.flatnonzero(ok)):
         dr = layout.residuals_tangent(pts, bn, fr, pos, dpositions, grid)
-        flat = fr * B + bn
+        flat_index = fr * B + bn
         for t in range(n_dir):
-            sums[t] += np.bincount(flat, weights=dr[t], minlength=F * B)
+            sums[t] += np.bincount(flat_index, weights=dr[t], minlength=F * B)
     for t in range(n_dir):
         out[t] = np.divide(sums[t].reshape(F, B), n, out=np.zeros((F, B)), where=n > 0)
     return out
 
 
 CHUNK_POINTS = 1_000_000
-"""Points per pass of :func:`residual_field` and :func:`residual_field_tangent`: whole frames
-are taken together up to about this many points, so a paper-size sequence (1800 frames of
-~15k points) does not hold gigabytes of float64 copies at once."""
+"""Binned points per pass of :func:`residual_field` and :func:`residual_field_tangent`: whole
+frames are taken together up to about this many points, and a mapped sequence's pages are
+released after each pass, so a paper-size sequence (1800 frames of ~15k points) is never
+resident, nor copied, at once."""
+
+
+def _ok_frames(pos: np.ndarray, bins) -> np.ndarray:
+    """(F,) bool: frames with binned points and finite node positions (``pos`` (F, N, 3))."""
+    finite = np.isfinite(pos).reshape(pos.shape[0], -1).all(axis=1)
+    return finite & np.array([len(bins[f]) > 0 for f in range(pos.shape[0])], dtype=bool)
+
+
+def _blocks(kstart: np.ndarray, use: np.ndarray):
+    """Yield (n,) int64 runs of the frames ``use``, whole frames, about :data:`CHUNK_POINTS`
+    binned points each (``kstart`` (F + 1,): first binned point of each frame)."""
+    start = 0
+    sizes = kstart[use + 1] - kstart[use]
+    while start < use.size:
+        stop, k = start, 0
+        while stop < use.size and (stop == start or k + sizes[stop] <= CHUNK_POINTS):
+            k += sizes[stop]
+            stop += 1
+        yield np.ascontiguousarray(use[start:stop], dtype=np.int64)
+        start = stop
 
 
 def _chunks(points, bins, use: np.ndarray):
     """Yield (frame index (K,) int64, points (K, 3) float64, bins (K,) int64) over the frames
     ``use``, whole frames at a time, about :data:`CHUNK_POINTS` points per chunk (each
     frame's points are read once: ``points`` may gather them from mapped clouds)."""
-    start = 0
-    while start < use.size:
-        stop, k = start, 0
-        while stop < use.size and (stop == start or k + len(bins[use[stop]]) <= CHUNK_POINTS):
-            k += len(bins[use[stop]])
-            stop += 1
-        frames = use[start:stop]
+    kstart = np.concatenate([[0], np.cumsum([len(bins[f]) for f in range(len(bins))])]).astype(np.int64)
+    for frames in _blocks(kstart, np.asarray(use, dtype=np.int64)):
         chunk = (np.concatenate([np.full(len(bins[f]), f, dtype=np.int64) for f in frames]),
                  np.concatenate([np.asarray(points[f], dtype=np.float64) for f in frames]),
                  np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in frames]))
         if isinstance(points, KeptPoints):
             points.release()  # the chunk is copied out: its mapped pages can go
         yield chunk
-        start = stop
+
+
+class Ragged(SequenceABC):
+    """F arrays stored as one flat (K, ...) array and (F + 1,) int64 ``starts``: ``self[f]``
+    is the view ``flat[starts[f]:starts[f + 1]]``. ``nbytes``: the flat array's bytes.
+
+    Raises:
+        ValueError: ``starts`` does not rise from 0 to ``len(flat)``.
+    """
+
+    def __init__(self, flat: np.ndarray, starts: np.ndarray):
+        starts = np.asarray(starts, dtype=np.int64)
+        if starts.ndim != 1 or starts.size < 1 or starts[0] != 0 or starts[-1] != len(flat) or np.any(np.diff(starts) < 0):
+            raise ValueError(f"ragged starts must rise from 0 to {len(flat)}")
+        self.flat, self.starts = flat, starts
+
+    def __len__(self) -> int:
+        return int(self.starts.size - 1)
+
+    def __getitem__(self, f):
+        if isinstance(f, slice):
+            return [self[i] for i in range(*f.indices(len(self)))]
+        f = range(len(self))[f]
+        return self.flat[self.starts[f]:self.starts[f + 1]]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.flat.nbytes)
 
 
 class KeptPoints(SequenceABC):
     """The binned points of each frame, read from the clouds when asked for.
 
-    ``kept[f]`` indexes the points of ``clouds[f]`` that fall in a bin; ``self[f]`` is
-    ``clouds[f][kept[f]]`` ((K_f, 3), the clouds' dtype, m, phantom frame), gathered on
-    each access. A worker keeps these for every sequence it replays: 4 bytes a point
-    instead of a float32 copy's 12, the coordinates staying in the (mapped, shared,
-    releasable) clouds. ``nbytes``: the indices' bytes.
+    ``index[f]`` (a :class:`Ragged` of int32) indexes the points of ``clouds[f]`` that fall
+    in a bin; ``self[f]`` is ``clouds[f][index[f]]`` ((K_f, 3), the clouds' dtype, m,
+    phantom frame), gathered on each access. A worker keeps these for every sequence it
+    replays: 4 bytes a point instead of a float32 copy's 12, the coordinates staying in the
+    (mapped, shared, releasable) clouds; the compiled field reads them in place
+    (:func:`core.diagnosis.field_kernels.box_field`). ``nbytes``: the indices' bytes.
 
     Raises:
-        ValueError: ``clouds`` and ``kept`` differ in their number of frames.
+        ValueError: ``clouds`` and ``index`` differ in their number of frames.
     """
 
-    def __init__(self, clouds, kept: list[np.ndarray]):
-        if len(clouds) != len(kept):
-            raise ValueError(f"{len(clouds)} frames of clouds but {len(kept)} of kept indices")
-        self.clouds, self.kept = clouds, kept
+    def __init__(self, clouds, index: Ragged):
+        if len(clouds) != len(index):
+            raise ValueError(f"{len(clouds)} frames of clouds but {len(index)} of kept indices")
+        self.clouds, self.index = clouds, index
 
     def __len__(self) -> int:
-        return len(self.kept)
+        return len(self.index)
 
     def __getitem__(self, f):
         if isinstance(f, slice):
             return [self[i] for i in range(*f.indices(len(self)))]
-        return np.asarray(self.clouds[f])[self.kept[f]]
+        return np.asarray(self.clouds[f])[self.index[f]]
 
     @property
     def nbytes(self) -> int:
-        return int(sum(k.nbytes for k in self.kept))
+        return self.index.nbytes
 
     def release(self) -> bool:
         """Drop the clouds' mapped pages from the resident set
@@ -418,18 +389,51 @@ class KeptPoints(SequenceABC):
         return release_pages(self.clouds)
 
 
-def frame_bins(clouds, layout: FieldLayout) -> tuple[KeptPoints, list[np.ndarray], np.ndarray]:
+@dataclass
+class _Flat:
+    """Binned points as :func:`core.diagnosis.field_kernels.box_field` reads them."""
+
+    points: np.ndarray
+    cstart: np.ndarray
+    kept: np.ndarray
+    kstart: np.ndarray
+    bins: np.ndarray
+    source: object = None
+
+    def release(self) -> None:
+        if isinstance(self.source, KeptPoints):
+            self.source.release()
+
+
+def _flat(points, bins) -> _Flat:
+    """The binned points and bins as flat arrays: read in place from :func:`frame_bins`'s
+    (mapped clouds, indices, bins), else gathered (any F arrays (K_f, 3) and (K_f,))."""
+    if isinstance(points, KeptPoints) and isinstance(points.clouds, Clouds) and isinstance(bins, Ragged) \
+            and np.array_equal(points.index.starts, bins.starts):
+        return _Flat(points.clouds.points, points.clouds.offsets, points.index.flat, bins.starts, bins.flat, points)
+    sizes = np.array([len(bins[f]) for f in range(len(bins))], dtype=np.int64)
+    kstart = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    gathered = [np.asarray(points[f], dtype=np.float64).reshape(-1, 3) for f in range(len(bins))]
+    pts = np.concatenate(gathered) if gathered else np.zeros((0, 3))
+    kept = np.arange(kstart[-1], dtype=np.int64) - np.repeat(kstart[:-1], sizes)
+    flat_bins = np.concatenate([np.asarray(bins[f], dtype=np.int64) for f in range(len(bins))]) if len(bins) \
+        else np.zeros(0, dtype=np.int64)
+    return _Flat(pts, kstart, kept, kstart, flat_bins)
+
+
+def frame_bins(clouds, layout: FieldLayout) -> tuple[KeptPoints, Ragged, np.ndarray]:
     """Per frame: the kept points, their bin indices, and the (F, B) point counts.
 
     Args:
         clouds: F arrays (M_f, 3) of measured points, m, phantom frame (kept by
-            reference: the points are read from them when used).
+            reference: the points are read from them when used), or
+            :class:`core.preparation.Clouds`.
 
     Returns:
         (points: :class:`KeptPoints`, F arrays (K_f, 3) of the clouds' dtype on access;
-        bins: F arrays (K_f,) int16 (int32 past 32767 bins); counts: (F, B) int64).
-        A paper-size sequence (1800 frames of ~15k points) keeps ~0.16 GB of indices
-        and bins instead of ~0.43 GB of float32 points and int32 bins.
+        bins: F arrays (K_f,) int16 (int32 past 32767 bins), a :class:`Ragged`;
+        counts: (F, B) int64). A paper-size sequence (1800 frames of ~15k points) keeps
+        ~0.16 GB of indices and bins instead of ~0.43 GB of float32 points and int32 bins.
     """
     kept, idx = [], []
     bin_type = np.int16 if layout.n_bins <= np.iinfo(np.int16).max else np.int32
@@ -440,7 +444,10 @@ def frame_bins(clouds, layout: FieldLayout) -> tuple[KeptPoints, list[np.ndarray
         kept.append(keep.astype(np.int32))
         idx.append(b[keep].astype(bin_type))
         counts[f] = np.bincount(b[keep], minlength=layout.n_bins)
-    return KeptPoints(clouds, kept), idx, counts
+    starts = np.concatenate([[0], np.cumsum([k.size for k in kept])]).astype(np.int64)
+    flat_kept = np.concatenate(kept) if kept else np.zeros(0, dtype=np.int32)
+    flat_bins = np.concatenate(idx) if idx else np.zeros(0, dtype=bin_type)
+    return KeptPoints(clouds, Ragged(flat_kept, starts)), Ragged(flat_bins, starts), counts
 
 
 def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bins, counts) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -450,36 +457,46 @@ def residual_field(positions: np.ndarray, grid, layout: FieldLayout, points, bin
         positions: (F, N, 3) simulated node positions, m, phantom frame.
         grid: (nx, ny, nz) of the mesh, or with a :class:`core.diagnosis.patches.PatchLayout`
             the replayed :class:`core.simulation.mesh.TetMesh`. layout, points, bins,
-            counts: from :func:`frame_bins`.
+            counts: from :func:`frame_bins` (or any F arrays (K_f, 3) and (K_f,) of them).
 
     Returns:
         (field (F, B) float64 mean residual per bin, m (0 where a bin is empty or the
         frame diverged); per noise group of :data:`NOISE_GROUPS`, the within-bin sum of
         squared deviations (6,) m^2 and its degrees of freedom (6,)): the last two
-        estimate each face's noise variance. All frames are done in one vectorised pass per face.
+        estimate each face's noise variance. The box's faces are done by one compiled pass
+        over the points where they are stored (:func:`core.diagnosis.field_kernels.box_field`),
+        a phantom's patches by one vectorised pass per chunk of frames.
     """
     F, B = counts.shape
     field = np.zeros((F, B))
     G = len(NOISE_GROUPS)
     ss, dof = np.zeros(G), np.zeros(G, dtype=np.int64)
     face_of = layout.face_of_bin()
-    pos = np.asarray(positions, dtype=np.float64)
-    ok = np.array([len(bins[f]) > 0 and bool(np.all(np.isfinite(pos[f]))) for f in range(F)], dtype=bool)
+    pos = np.ascontiguousarray(positions, dtype=np.float64)
+    ok = _ok_frames(pos, bins)
     if not np.any(ok):
         return field, ss, dof
     n = np.where(ok[:, None], counts, 0)
     points_per_group = np.zeros(G, dtype=np.int64)
-    for fr, pts, bn in _chunks(points, bins, np.flatnonzero(ok)):
-        fb = face_of[bn]
-        r = layout.residuals(pts, bn, fr, pos, grid)
-        flat = fr * B + bn
-        # a chunk holds whole frames: their bin means are final once it is summed
-        sums = np.bincount(flat, weights=r, minlength=F * B)
-        mean = np.divide(sums, n.ravel(), out=np.zeros(F * B), where=n.ravel() > 0)
-        rows = np.unique(fr)
-        field[rows] = mean.reshape(F, B)[rows]
-        ss += np.bincount(fb, weights=(r - mean[flat]) ** 2, minlength=G)
-        points_per_group += np.bincount(fb, minlength=G)
+    if isinstance(layout, FieldLayout):
+        flat = _flat(points, bins)
+        gi, gf = face_geometry(grid, layout.size)
+        for frames in _blocks(flat.kstart, np.flatnonzero(ok)):
+            box_field(flat.points, flat.cstart, flat.kept, flat.kstart, flat.bins, frames, pos, face_of, gi, gf,
+                      counts, field, ss, points_per_group)
+            flat.release()  # this block's mapped pages can go
+    else:
+        for fr, pts, bn in _chunks(points, bins, np.flatnonzero(ok)):
+            fb = face_of[bn]
+            r = layout.residuals(pts, bn, fr, pos, grid)
+            flat_index = fr * B + bn
+            # a chunk holds whole frames: their bin means are final once it is summed
+            sums = np.bincount(flat_index, weights=r, minlength=F * B)
+            mean = np.divide(sums, n.ravel(), out=np.zeros(F * B), where=n.ravel() > 0)
+            rows = np.unique(fr)
+            field[rows] = mean.reshape(F, B)[rows]
+            ss += np.bincount(fb, weights=(r - mean[flat_index]) ** 2, minlength=G)
+            points_per_group += np.bincount(fb, minlength=G)
     dof = points_per_group - np.bincount(np.broadcast_to(face_of, n.shape)[n > 0], minlength=G)
     return field, ss, dof.astype(np.int64)
 

@@ -181,3 +181,55 @@ def test_field_derivative_is_the_central_difference_of_the_field():
             fd = (face_residuals(pts, pos + h * d[t], grid, SIZE, face, frames=frames)
                   - face_residuals(pts, pos - h * d[t], grid, SIZE, face, frames=frames)) / (2 * h)
             assert np.abs(dr[t] - fd).max() <= 1e-6 * np.abs(fd).max(), face
+
+
+def test_the_compiled_field_reads_mapped_clouds_in_place_and_equals_per_point_residuals(tmp_path):
+    """The box's field is one compiled pass over the points where they are stored (mapped
+    clouds and kept indices): its bin means, per-face scatter and degrees of freedom, and
+    its tangent, equal those assembled here from per-point residuals of each face
+    (:meth:`FieldLayout.residuals`), with a diverged frame and an empty one skipped."""
+    from core.diagnosis.fields import residual_field_tangent
+    from core.preparation import Clouds
+
+    rng = np.random.default_rng(5)
+    lay = FieldLayout(SIZE, (8, 4), side_rows=2)
+    rest = box_mesh(SIZE, GRID).nodes
+    F = 6
+    clouds = []
+    for f in range(F):
+        n = 0 if f == 4 else 2500
+        p = np.column_stack([rng.uniform(-0.004, SIZE[0] + 0.004, n), rng.uniform(-0.004, SIZE[1] + 0.004, n),
+                             rng.uniform(SIZE[2] - 0.012, SIZE[2] + 0.001, n)])
+        clouds.append(p.astype(np.float32))
+    counts_f = np.array([len(c) for c in clouds])
+    np.save(tmp_path / "p.npy", np.concatenate(clouds))
+    np.save(tmp_path / "o.npy", np.concatenate([[0], np.cumsum(counts_f)]))
+    mapped = Clouds.open(str(tmp_path / "p.npy"), str(tmp_path / "o.npy"))
+    pts, bins, counts = frame_bins(mapped, lay)
+    pos = rest[None] + 3e-4 * rng.standard_normal((F,) + rest.shape)
+    pos[2, 5] = np.nan  # a diverged frame
+    dpos = rng.standard_normal((3,) + pos.shape)
+    field, ss, dof = residual_field(pos, GRID, lay, pts, bins, counts)
+    dfield = residual_field_tangent(pos, dpos, GRID, lay, pts, bins, counts)
+
+    B = lay.n_bins
+    face_of = lay.face_of_bin()
+    want, dwant = np.zeros((F, B)), np.zeros((3, F, B))
+    want_ss, points = np.zeros(len(ss)), np.zeros(len(ss), dtype=np.int64)
+    for f in (0, 1, 3, 5):
+        p = np.asarray(clouds[f], dtype=np.float64)[pts.index[f]]
+        bn = np.asarray(bins[f], dtype=np.int64)
+        fr = np.full(len(bn), f)
+        r = lay.residuals(p, bn, fr, pos, GRID)
+        dr = lay.residuals_tangent(p, bn, fr, pos, dpos, GRID)
+        n = np.bincount(bn, minlength=B)
+        want[f] = np.divide(np.bincount(bn, weights=r, minlength=B), n, out=np.zeros(B), where=n > 0)
+        for t in range(3):
+            dwant[t, f] = np.divide(np.bincount(bn, weights=dr[t], minlength=B), n, out=np.zeros(B), where=n > 0)
+        want_ss += np.bincount(face_of[bn], weights=(r - want[f][bn]) ** 2, minlength=len(ss))
+        points += np.bincount(face_of[bn], minlength=len(ss)) - np.bincount(face_of[n > 0], minlength=len(ss))
+    assert np.all(field[2] == 0) and np.all(field[4] == 0) and np.any(field[0] != 0)
+    np.testing.assert_allclose(field, want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(dfield, dwant, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(ss, want_ss, rtol=1e-10)
+    assert np.array_equal(dof, points) and dof[0] > 1000 and dof[1:5].sum() > 100
