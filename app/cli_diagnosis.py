@@ -54,7 +54,9 @@ def cmd_diagnose(args) -> int:
                       f"extended {fz['extended_test_rms_N'] * 1e3:.1f} mN (gain {100 * fz['gain']:.1f} %)")
     else:
         console.print(f"probe force: {diag.force_note}")
-    print(f"{diag.simulations} simulations in {diag.timings['total']:.0f} s; wrote {out}/diagnosis.json and {out}/report.md")
+    repeated = f" ({diag.simulations_repeated} of runs the cache had dropped)" if diag.simulations_repeated else ""
+    print(f"{diag.simulations} simulations{repeated} in {diag.timings['total']:.0f} s; "
+          f"wrote {out}/diagnosis.json and {out}/report.md")
     return 0
 
 

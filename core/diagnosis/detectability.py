@@ -302,7 +302,8 @@ def unsettled(e, alpha: float) -> str | None:
 
 def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: DiagnosisConfig, cands: dict,
                   nulls: dict, palp: dict, *, claimed: list[str], confounded: list[list[str]],
-                  refused: dict[str, str] | None = None, small: dict[str, str] | None = None) -> dict:
+                  refused: dict[str, str] | None = None, small: dict[str, str] | None = None,
+                  progress=None) -> dict:
     """{kind: :class:`Detectability`} for every kind of ``cfg.kinds`` against the round's model.
 
     A kind in ``refused`` ({kind: why}: its held-out evidence passed but it made a channel
@@ -319,7 +320,8 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     kinds and its searches (from the round's fit of it when it was tested, else from a
     fit along its signature alone), or the held-out drop of the best model-form variant
     at an end of its plausible range when that is higher (a claim must exceed it too,
-    :func:`core.diagnosis.inference.claim_check`).
+    :func:`core.diagnosis.inference.claim_check`). ``progress(i, kind)``, when given, is
+    called before the i-th kind.
     """
     out = {}
     in_group = {k for g in confounded for k in g}
@@ -328,7 +330,9 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     # so a size is stated against that bar too
     variant, t_mf = rnd.model_form(ev)
     refused = dict(refused or {})  # the caller's, and the kinds train and validation disagree on
-    for kind in cfg.kinds:
+    for i, kind in enumerate(cfg.kinds):
+        if progress is not None:
+            progress(i, kind)
         cls = EFFECT_KINDS[kind]
         options = cls.assumptions(ctx)  # once: an inclusion's ask the surface about every press
         e = nulls.get(kind)

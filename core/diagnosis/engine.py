@@ -310,12 +310,14 @@ def diagnose_prepared(
     rng = np.random.default_rng(cfg.seed)
     joint = ev.use_force
     timings: dict[str, float] = {}
-    clock = [time.perf_counter()]
+    stage_sims: dict[str, int] = {}
+    clock = [time.perf_counter(), ev.simulations]
 
     def lap(name: str) -> None:
         now = time.perf_counter()
         timings[name] = timings.get(name, 0.0) + now - clock[0]
-        clock[0] = now
+        stage_sims[name] = stage_sims.get(name, 0) + ev.simulations - clock[1]
+        clock[0], clock[1] = now, ev.simulations
 
     say(0.02, "replaying the base model")
     notes: list[str] = []
@@ -517,7 +519,8 @@ def diagnose_prepared(
         say(0.8, "how large each kind would have to be to show")
         det = detectability(ev, last, ctx_all, cfg, cands, last_evidence, palp,
                             claimed=[c.kind for c, _, _ in claimed], confounded=confounded, refused=refused,
-                            small=small)
+                            small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
+                                                                      f"how large each kind would have to be to show: {kind}"))
         lap("detectability")
 
     # the fields the report shows on train and validation (the fine grid's runs of the
@@ -571,7 +574,8 @@ def diagnose_prepared(
                      noise_by_face_m={f: math.sqrt(face_sigma2[NOISE_GROUPS.index(f)]) for f in layout.faces()}),
         base_fields={r.sequence: r for r in base_train + base_val + base_test},
         extended_fields={r.sequence: r for r in ext_train + ext_val + ext_runs},
-        layout=layout, timings=timings, simulations=ev.simulations,
+        layout=layout, timings=timings, simulations=ev.simulations, simulations_by_stage=stage_sims,
+        simulations_repeated=ev.repeated,
         force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=tuple(dict.fromkeys(last.nuisance.names)) if last else (),
         notes=tuple(notes), model_form=_model_form_json(last, ev),
     )

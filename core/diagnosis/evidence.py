@@ -155,7 +155,7 @@ def _run_bytes(run: "FieldRun") -> int:
 def _bins_bytes(hit) -> int:
     """Bytes of a :func:`_binned` entry ``(clouds, (points, bins, counts))`` (the clouds are the caller's)."""
     pts, idx, counts = hit[1]
-    return int(pts.nbytes + sum(i.nbytes for i in idx) + counts.nbytes)
+    return int(pts.nbytes + idx.nbytes + counts.nbytes)
 
 
 class LruCache(OrderedDict):
@@ -168,6 +168,8 @@ class LruCache(OrderedDict):
     def __init__(self, limit: int, size, max_items: int | None = None):
         super().__init__()
         self.limit, self.size, self.max_items, self.bytes = int(limit), size, max_items, 0
+        self.dropped: set = set()
+        """Keys the limits have evicted (a caller counts the work it repeats)."""
 
     def get_recent(self, key):
         """The value under ``key`` (marked recently used), or None."""
@@ -182,8 +184,9 @@ class LruCache(OrderedDict):
         self[key] = value
         self.bytes += self.size(value)
         while len(self) > 1 and (self.bytes > self.limit or (self.max_items is not None and len(self) > self.max_items)):
-            _, old = self.popitem(last=False)
+            key, old = self.popitem(last=False)
             self.bytes -= self.size(old)
+            self.dropped.add(key)
 
     def clear(self) -> None:
         super().clear()
@@ -298,6 +301,8 @@ class Evidence:
         self.force_delta: dict[str, np.ndarray] = {}
         self.force_ratio: dict[str, float] = {}
         self.simulations = 0
+        self.repeated = 0
+        """Simulations of runs the cache had made and dropped (its limits cost this many)."""
         self.indentation: dict[str, np.ndarray] = {}
         """Per sequence: the nominal probe's depth into the rest phantom at each frame, m
         (filled on first use; a curved shape's depth costs a proximity query)."""
@@ -390,6 +395,7 @@ class Evidence:
                 if hit is not None:
                     found[k] = hit
                 elif k not in keys:
+                    self.repeated += k in self.cache.dropped
                     keys.append(k)
                     todo.append(FieldTrial(self.trial(n, m, grid), self.layout, paper, d))
         if todo:

@@ -131,6 +131,10 @@ class Diagnosis:
     layout: FieldLayout
     timings: dict
     simulations: int
+    simulations_by_stage: dict = field(default_factory=dict)
+    """{stage: simulations} in the stages of ``timings``."""
+    simulations_repeated: int = 0
+    """Simulations of runs made before and dropped by the runs cache (:data:`core.diagnosis.evidence.RUNS_CACHE_BYTES`)."""
     learned_correction: dict | None = None
     """:meth:`core.diagnosis.explain.CorrectionExplanation.to_json` of a trained network, when one was given."""
     force: dict | None = None
@@ -202,6 +206,8 @@ class Diagnosis:
                        "kinds: on a session without any effect, the chance that anything is claimed",
                        "null_replicates": cfg.n_null, "block_s": cfg.block},
             "simulations": self.simulations,
+            "simulations_by_stage": self.simulations_by_stage,
+            "simulations_repeated": self.simulations_repeated,
             "timings_s": self.timings,
             "notes": list(self.notes),
             **({"model_form": self.model_form} if self.model_form is not None else {}),

@@ -30,6 +30,8 @@ def test_a_bounded_cache_replays_what_it_dropped_and_answers_the_same(small_sess
     again = {name: ev.runs([[], gravity], "validation") for name, ev in (("roomy", roomy), ("tight", tight))}
     assert roomy.simulations == 2 * n_val  # all cached
     assert tight.simulations > 2 * n_val  # dropped runs replayed
+    # and counted as repeated work: every simulation past the first pass replays a dropped run
+    assert roomy.repeated == 0 and tight.repeated == tight.simulations - 2 * n_val
     for name in ("roomy", "tight"):
         for a, b in zip(first[name], again[name]):
             for ra, rb in zip(a, b):
