@@ -53,6 +53,7 @@ and E is then fitted with gravity at its physical value
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from dataclasses import dataclass, replace
@@ -63,7 +64,7 @@ import numpy as np
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability, unobservable
-from core.diagnosis.evidence import Directions, Evidence, Spec
+from core.diagnosis.evidence import Directions, Evidence, Spec, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
@@ -533,6 +534,14 @@ def diagnose_prepared(
     ext_train = ev.runs([ext_spec], "train", fine=True)[0]
     ext_val = ev.runs([ext_spec], "validation", fine=True)[0]
     ev.cache.clear()
+    # what the report needs of the selection rounds, kept; the rounds' nuisances, nulls and
+    # runs freed, and the workers' binned train and validation points with them
+    nuisance_names = tuple(dict.fromkeys(last.nuisance.names)) if last else ()
+    model_form = _model_form_json(last, ev)
+    last = rnd = last_evidence = last_fits = base_fit = e_fit = noise_runs = base = None
+    evid = {}
+    gc.collect()
+    executor.run_everywhere(drop_binned_points)
 
     # test errors: base, each cause alone, extended
     say(0.9, "measuring the gain on the test sequences")
@@ -576,6 +585,6 @@ def diagnose_prepared(
         extended_fields={r.sequence: r for r in ext_train + ext_val + ext_runs},
         layout=layout, timings=timings, simulations=ev.simulations, simulations_by_stage=stage_sims,
         simulations_repeated=ev.repeated,
-        force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=tuple(dict.fromkeys(last.nuisance.names)) if last else (),
-        notes=tuple(notes), model_form=_model_form_json(last, ev),
+        force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=nuisance_names,
+        notes=tuple(notes), model_form=model_form,
     )

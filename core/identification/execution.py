@@ -22,6 +22,12 @@ class Executor:
     def map(self, fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any], progress: Progress | None = None) -> list:
         raise NotImplementedError
 
+    def run_everywhere(self, fn: Callable[[], Any]) -> None:
+        """Call ``fn()`` once in every process that runs items (this one for a serial
+        executor, each worker for Dask): how a caller empties the per-process caches of
+        the trials it is done with. Exceptions propagate."""
+        fn()
+
 
 class SerialExecutor(Executor):
     """Runs the trials one after the other in this process."""
@@ -73,6 +79,9 @@ class DaskExecutor(Executor):
             if progress:
                 progress(done, len(items))
         return self.client.gather(futures)
+
+    def run_everywhere(self, fn):
+        self.client.run(fn)
 
 
 @contextmanager

@@ -4,7 +4,7 @@ of runs): dropping a run costs a replay, never a different answer."""
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Evidence, LruCache, _run_bytes
+from core.diagnosis.evidence import Evidence, LruCache, _run_bytes, drop_binned_points
 from core.diagnosis.patches import field_layout
 from core.identification.execution import SerialExecutor
 from core.preparation import prepare_session
@@ -58,3 +58,31 @@ def test_the_least_recently_used_run_goes_first():
     assert cache.get_recent("b") is None
     cache.put("big", Run(np.zeros(1000)))  # larger than the limit: kept alone
     assert list(cache) == ["big"] and cache.bytes == 8000
+
+
+def _binned_entries() -> int:
+    from core.diagnosis import evidence
+
+    return len(evidence._BINS)
+
+
+def test_the_test_stage_can_empty_every_workers_binned_points(small_session):
+    """Each Dask worker caches the binned points of the sequences it replays; the diagnosis
+    empties them on every worker before its test stage (run_everywhere), and a later run
+    bins again and gives the same field."""
+    from core.identification import executor
+
+    prepared = prepare_session(small_session)
+    cfg = DiagnosisConfig(fine_grid=None)
+    with executor(workers=2) as ex:
+        ev = Evidence(prepared, cfg, ex, field_layout(prepared, cfg))
+        first = ev.runs([[]], "validation")[0]
+        held = ex.client.run(_binned_entries)
+        assert sum(held.values()) >= len(ev.names["validation"]) and len(held) == 2
+        ex.run_everywhere(drop_binned_points)
+        assert set(ex.client.run(_binned_entries).values()) == {0}
+        ev.cache.clear()
+        again = ev.runs([[]], "validation")[0]
+        assert sum(ex.client.run(_binned_entries).values()) >= len(ev.names["validation"])
+    for a, b in zip(first, again):
+        np.testing.assert_array_equal(a.field, b.field)
