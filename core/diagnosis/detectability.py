@@ -21,7 +21,7 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Spec
-from core.diagnosis.nuisance import Nuisance, model_form_worlds
+from core.diagnosis.nuisance import FreeBeside, Nuisance, model_form_worlds
 from core.diagnosis.results import Detectability
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
 
@@ -82,7 +82,7 @@ def _min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed: dic
     return found
 
 
-def _world_statistic(nuis: Nuisance, fit: Nuisance, X_t: np.ndarray, X_v: np.ndarray, s: float, sigma2: float) -> float:
+def _world_statistic(nuis: Nuisance, fit: FreeBeside, X_t: np.ndarray, X_v: np.ndarray, s: float, sigma2: float) -> float:
     """The noise-free held-out statistic T (chi2 units) of data holding ``s`` times the change
     (X_t, X_v) when the candidate is fitted along the replay's own signature: ``fit`` holds
     that signature as a free column beside the bounded nuisances ``nuis``."""
@@ -140,9 +140,7 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
             X_v = (vec["validation"][1 + n + i] - vec["validation"][1 + i]) / st
             if np.all(np.isfinite(X_t)) and np.all(np.isfinite(X_v)):
                 changes.append((name, X_t, X_v))
-        fit = Nuisance(np.concatenate([D_t[:, None], nuis.train], axis=1),
-                       np.concatenate([D_v[:, None], nuis.validation], axis=1), ("effect",) + nuis.names,
-                       np.concatenate([[-np.inf], nuis.lower]), np.concatenate([[np.inf], nuis.upper]))
+        fit = nuis.beside(D_t, D_v)  # the signature as a free column beside the bounded nuisances
 
         def weakest(s):
             return min((_world_statistic(nuis, fit, X_t, X_v, s, ev.sigma2), name) for name, X_t, X_v in changes)

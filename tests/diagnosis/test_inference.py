@@ -408,3 +408,26 @@ def test_a_kind_s_size_holds_for_a_world_whose_change_of_the_data_differs_from_t
     P_d, P_x = nuis.project(D_t), nuis.project(J_t[:, 1])
     other = P_x - (P_x @ P_d) / (P_d @ P_d) * P_d
     assert test.min_strength(D_t, D_v, crit, 100.0, expected=weakest(other, J_v[:, 1])) is None
+
+
+def test_a_free_column_beside_bounded_nuisances_projects_as_the_concatenated_directions():
+    """Nuisance.beside shares the columns and their SVD; its held-out residual equals that
+    of the concatenated directions (free column first), where no bound is reached and where
+    the bounds bite (BVLS), and with a column already in the nuisances' span."""
+    rng = np.random.default_rng(11)
+    L_t, L_v, m = 400, 300, 5
+    N_t, N_v = rng.standard_normal((L_t, m)), rng.standard_normal((L_v, m))
+    for bounds in (np.inf, 0.05):
+        nuis = Nuisance(N_t, N_v, tuple(f"n{i}" for i in range(m)), np.full(m, -bounds), np.full(m, bounds))
+        for d_t, d_v in ((rng.standard_normal(L_t), rng.standard_normal(L_v)),
+                         (N_t @ rng.standard_normal(m), N_v @ rng.standard_normal(m))):  # inside the span
+            full = Nuisance(np.column_stack([d_t, N_t]), np.column_stack([d_v, N_v]), ("effect",) + nuis.names,
+                            np.concatenate([[-np.inf], nuis.lower]), np.concatenate([[np.inf], nuis.upper]))
+            fast = nuis.beside(d_t, d_v)
+            for _ in range(3):
+                r_t = 0.7 * d_t + N_t @ rng.uniform(-1, 1, m) + 0.1 * rng.standard_normal(L_t)
+                r_v = rng.standard_normal(L_v)
+                want, got = full.held_out(r_v, r_t), fast.held_out(r_v, r_t)
+                np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9)
+                assert np.linalg.norm(got - r_v) > 0.1  # something was fitted
+    assert nuis.beside(d_t, d_v).size == m + 1
