@@ -107,3 +107,31 @@ def test_the_field_in_chunks_of_frames_equals_the_field_in_one_pass(dome, monkey
     np.testing.assert_array_equal(chunked[2], one[2])
     np.testing.assert_array_equal(tan_chunked, tan_one)
     assert np.all(one[0][4] == 0) and np.any(one[0] != 0)
+
+
+def test_normals_of_many_frames_and_remembered_samples_equal_the_direct_ones(dome):
+    """The deformed normals at the samples (one sparse product for blocks of frames) equal
+    the per-frame sums of the triangles' cross products, and the remembered nearest samples
+    equal a fresh KD-tree query (the same points asked twice get the same array)."""
+    sampler = sampler_of(dome)
+    rng = np.random.default_rng(4)
+    F = sampler.NORMAL_FRAMES + 7  # more than one block
+    pos = dome.nodes[None] + 1e-3 * rng.standard_normal((F,) + dome.nodes.shape)
+    pts = _sphere_points(3000, 5e-4, 9)
+    frames = rng.integers(0, F, pts.shape[0])
+    s = sampler.samples_of(pts)
+    assert np.array_equal(s, sampler.nearest(pts)[1]) and sampler.samples_of(pts.copy()) is s
+    got = sampler._point_normals(pos, frames, s)
+    t = sampler.triangles
+    want = np.zeros_like(got)
+    for f in np.unique(frames):
+        p = pos[f]
+        face = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+        vn = np.zeros_like(p)
+        for k in range(3):
+            np.add.at(vn, t[:, k], face)
+        m = frames == f
+        nn = np.einsum("mk,mkj->mj", sampler.weights[s[m]], vn[sampler.nodes[s[m]]])
+        want[m] = nn / np.linalg.norm(nn, axis=1, keepdims=True)
+    np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12)
+    assert np.all(np.abs(np.linalg.norm(got, axis=1) - 1) < 1e-12) and np.unique(frames).size > sampler.NORMAL_FRAMES
