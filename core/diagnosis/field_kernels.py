@@ -68,13 +68,10 @@ def _coord(x0, x1, x2, a):
 
 
 @njit(cache=True, inline="always")
-def _point_residual(x0, x1, x2, pos, fr, gi, gf, k):
-    """Signed normal residual (m) of the point (x0, x1, x2) against face ``k`` of frame
-    ``fr`` of ``pos`` (F, N, 3): the in-plane motion of its rest cell corrected to first
-    order, then the bilinear face's normal coordinate; positive outside the model."""
-    axis, u, v, base, su, sv, nu, nv = gi[k, 0], gi[k, 1], gi[k, 2], gi[k, 3], gi[k, 4], gi[k, 5], gi[k, 6], gi[k, 7]
-    hu, hv, sign = gf[k, 0], gf[k, 1], gf[k, 2]
-    pu, pv, pa = _coord(x0, x1, x2, u), _coord(x0, x1, x2, v), _coord(x0, x1, x2, axis)
+def _moved_cell(pu, pv, pos, fr, base, su, sv, nu, nv, hu, hv, u, v):
+    """The point's rest cell with its bilinear weights and first node, and the cell it
+    falls in once that cell's in-plane node motion is taken out (first order):
+    ``(w00, w10, w01, w11, n00, wa, wb, m00)``; a cell's other nodes are ``+ su``, ``+ sv``."""
     i, j, wa, wb = _cell(pu, pv, hu, hv, nu, nv)
     w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
     n00 = base + i * su + j * sv
@@ -84,12 +81,23 @@ def _point_residual(x0, x1, x2, pos, fr, gi, gf, k):
           + w01 * (pos[fr, n01, u] - i * hu) + w11 * (pos[fr, n11, u] - (i + 1) * hu))
     dv = (w00 * (pos[fr, n00, v] - j * hv) + w10 * (pos[fr, n10, v] - j * hv)
           + w01 * (pos[fr, n01, v] - (j + 1) * hv) + w11 * (pos[fr, n11, v] - (j + 1) * hv))
-    i, j, wa, wb = _cell(pu - du, pv - dv, hu, hv, nu, nv)
-    n00 = base + i * su + j * sv
-    n10, n01 = n00 + su, n00 + sv
-    n11 = n10 + sv
-    z = ((1 - wa) * (1 - wb) * pos[fr, n00, axis] + wa * (1 - wb) * pos[fr, n10, axis]
-         + (1 - wa) * wb * pos[fr, n01, axis] + wa * wb * pos[fr, n11, axis])
+    i2, j2, wa2, wb2 = _cell(pu - du, pv - dv, hu, hv, nu, nv)
+    return w00, w10, w01, w11, n00, wa2, wb2, base + i2 * su + j2 * sv
+
+
+@njit(cache=True, inline="always")
+def _point_residual(x0, x1, x2, pos, fr, gi, gf, k):
+    """Signed normal residual (m) of the point (x0, x1, x2) against face ``k`` of frame
+    ``fr`` of ``pos`` (F, N, 3): the in-plane motion of its rest cell corrected to first
+    order, then the bilinear face's normal coordinate; positive outside the model."""
+    axis, u, v, base, su, sv, nu, nv = gi[k, 0], gi[k, 1], gi[k, 2], gi[k, 3], gi[k, 4], gi[k, 5], gi[k, 6], gi[k, 7]
+    hu, hv, sign = gf[k, 0], gf[k, 1], gf[k, 2]
+    pu, pv, pa = _coord(x0, x1, x2, u), _coord(x0, x1, x2, v), _coord(x0, x1, x2, axis)
+    _, _, _, _, _, wa, wb, m00 = _moved_cell(pu, pv, pos, fr, base, su, sv, nu, nv, hu, hv, u, v)
+    m10, m01 = m00 + su, m00 + sv
+    m11 = m10 + sv
+    z = ((1 - wa) * (1 - wb) * pos[fr, m00, axis] + wa * (1 - wb) * pos[fr, m10, axis]
+         + (1 - wa) * wb * pos[fr, m01, axis] + wa * wb * pos[fr, m11, axis])
     return sign * (pa - z)
 
 
@@ -101,17 +109,9 @@ def _point_residual_tangent(x0, x1, x2, pos, dpos, fr, gi, gf, k, out, m):
     axis, u, v, base, su, sv, nu, nv = gi[k, 0], gi[k, 1], gi[k, 2], gi[k, 3], gi[k, 4], gi[k, 5], gi[k, 6], gi[k, 7]
     hu, hv, sign = gf[k, 0], gf[k, 1], gf[k, 2]
     pu, pv = _coord(x0, x1, x2, u), _coord(x0, x1, x2, v)
-    i, j, wa, wb = _cell(pu, pv, hu, hv, nu, nv)
-    w00, w10, w01, w11 = (1 - wa) * (1 - wb), wa * (1 - wb), (1 - wa) * wb, wa * wb
-    n00 = base + i * su + j * sv
+    w00, w10, w01, w11, n00, wa2, wb2, m00 = _moved_cell(pu, pv, pos, fr, base, su, sv, nu, nv, hu, hv, u, v)
     n10, n01 = n00 + su, n00 + sv
     n11 = n10 + sv
-    du = (w00 * (pos[fr, n00, u] - i * hu) + w10 * (pos[fr, n10, u] - (i + 1) * hu)
-          + w01 * (pos[fr, n01, u] - i * hu) + w11 * (pos[fr, n11, u] - (i + 1) * hu))
-    dv = (w00 * (pos[fr, n00, v] - j * hv) + w10 * (pos[fr, n10, v] - j * hv)
-          + w01 * (pos[fr, n01, v] - (j + 1) * hv) + w11 * (pos[fr, n11, v] - (j + 1) * hv))
-    i2, j2, wa2, wb2 = _cell(pu - du, pv - dv, hu, hv, nu, nv)
-    m00 = base + i2 * su + j2 * sv
     m10, m01 = m00 + su, m00 + sv
     m11 = m10 + sv
     f00, f10, f01, f11 = pos[fr, m00, axis], pos[fr, m10, axis], pos[fr, m01, axis], pos[fr, m11, axis]

@@ -266,9 +266,10 @@ def residual_field_tangent(positions: np.ndarray, dpositions: np.ndarray, grid, 
         dpos = np.ascontiguousarray(dpositions, dtype=np.float64)
         flat = _flat(points, bins)
         gi, gf = face_geometry(grid, layout.size)
+        face_of = layout.face_of_bin()
         for frames in _blocks(flat.kstart, np.flatnonzero(ok)):
             box_field_tangent(flat.points, flat.cstart, flat.kept, flat.kstart, flat.bins, frames, pos, dpos,
-                              layout.face_of_bin(), gi, gf, counts, out)
+                              face_of, gi, gf, counts, out)
             flat.release()
         return out
     n = np.where(ok[:, None], counts, 0).astype(np.float64)
