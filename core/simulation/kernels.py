@@ -17,7 +17,7 @@ __all__ = ["quat_to_matrix", "polar_update", "pk1_stress", "element_forces", "sc
            "sphere_triangle_candidates", "sphere_contacts", "constraint_matrix"]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def quat_to_matrix(qx, qy, qz, qw, R):
     """Rotation matrix (9,) row-major of the unit quaternion (x, y, z, w), into R."""
     xx, yy, zz = qx * qx, qy * qy, qz * qz
@@ -34,7 +34,7 @@ def quat_to_matrix(qx, qy, qz, qw, R):
     R[8] = 1 - 2 * (xx + yy)
 
 
-@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
+@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"}, _nrt=False)
 def pk1_stress(law, F, R, mu, lam, stiffening, P):
     """First Piola-Kirchhoff stress (9,) Pa of one element into P: law 0 corotational linear
     (Müller & Gross 2004; R its rotation), 1 stable neo-Hookean (Smith et al. 2018), 2
@@ -77,7 +77,7 @@ def pk1_stress(law, F, R, mu, lam, stiffening, P):
     P[8] = m * f8 + g * c8
 
 
-@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"})
+@njit(cache=True, fastmath={"contract", "arcp", "nsz", "reassoc"}, _nrt=False)
 def polar_update(F, q, e, iterations, R):
     """Warm-started Newton iterations on the polar decomposition of F (9,) from the
     quaternion ``q[:, e]`` (updated in place); R (9,) receives the rotation.

@@ -27,23 +27,25 @@ __all__ = ["element_forces_tangent", "stiffness_apply", "contact_geometry_tangen
 _FM = {"contract", "arcp", "nsz", "reassoc"}
 
 
-@njit(cache=True, fastmath=_FM)
-def quat_to_matrix_tangent(q, dq, dR):
-    """Derivative (9,) of :func:`core.simulation.kernels.quat_to_matrix` at q (4,) along dq (4,)."""
+@njit(cache=True, fastmath=_FM, _nrt=False)
+def quat_to_matrix_tangent(q, dq, dR, k=0):
+    """Derivative of :func:`core.simulation.kernels.quat_to_matrix` at q (4,) along row k of
+    dq (p, 4) into row k of dR (p, 9) (rows, not slices: a slice in a per-element loop costs
+    two atomic reference counts)."""
     qx, qy, qz, qw = q[0], q[1], q[2], q[3]
-    dx, dy, dz, dw = dq[0], dq[1], dq[2], dq[3]
-    dR[0] = -4.0 * (qy * dy + qz * dz)
-    dR[1] = 2.0 * (dx * qy + qx * dy - dw * qz - qw * dz)
-    dR[2] = 2.0 * (dx * qz + qx * dz + dw * qy + qw * dy)
-    dR[3] = 2.0 * (dx * qy + qx * dy + dw * qz + qw * dz)
-    dR[4] = -4.0 * (qx * dx + qz * dz)
-    dR[5] = 2.0 * (dy * qz + qy * dz - dw * qx - qw * dx)
-    dR[6] = 2.0 * (dx * qz + qx * dz - dw * qy - qw * dy)
-    dR[7] = 2.0 * (dy * qz + qy * dz + dw * qx + qw * dx)
-    dR[8] = -4.0 * (qx * dx + qy * dy)
+    dx, dy, dz, dw = dq[k, 0], dq[k, 1], dq[k, 2], dq[k, 3]
+    dR[k, 0] = -4.0 * (qy * dy + qz * dz)
+    dR[k, 1] = 2.0 * (dx * qy + qx * dy - dw * qz - qw * dz)
+    dR[k, 2] = 2.0 * (dx * qz + qx * dz + dw * qy + qw * dy)
+    dR[k, 3] = 2.0 * (dx * qy + qx * dy + dw * qz + qw * dz)
+    dR[k, 4] = -4.0 * (qx * dx + qz * dz)
+    dR[k, 5] = 2.0 * (dy * qz + qy * dz - dw * qx - qw * dx)
+    dR[k, 6] = 2.0 * (dx * qz + qx * dz - dw * qy - qw * dy)
+    dR[k, 7] = 2.0 * (dy * qz + qy * dz + dw * qx + qw * dx)
+    dR[k, 8] = -4.0 * (qx * dx + qy * dy)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, _nrt=False)
 def _polar_tangent(F, dF, q, dq, iterations, R, dR, Rq, dRq, th, dth, b, db):
     """The warm-started polar iterations of :func:`core.simulation.kernels.polar_update`
     with their tangents: ``q`` (4,) and ``dq`` (p, 4) in, updated in place; R (9,) and
@@ -53,7 +55,7 @@ def _polar_tangent(F, dF, q, dq, iterations, R, dR, Rq, dRq, th, dth, b, db):
     for _ in range(iterations):
         quat_to_matrix(q[0], q[1], q[2], q[3], Rq)
         for k in range(p):
-            quat_to_matrix_tangent(q, dq[k], dRq[k])
+            quat_to_matrix_tangent(q, dq, dRq, k)
         # B = R^T F, B_ij = sum_k R_ki F_kj
         for i in range(3):
             for j in range(3):
@@ -145,10 +147,10 @@ def _polar_tangent(F, dF, q, dq, iterations, R, dR, Rq, dRq, th, dth, b, db):
             break
     quat_to_matrix(q[0], q[1], q[2], q[3], R)
     for k in range(p):
-        quat_to_matrix_tangent(q, dq[k], dR[k])
+        quat_to_matrix_tangent(q, dq, dR, k)
 
 
-@njit(cache=True, fastmath=_FM)
+@njit(cache=True, fastmath=_FM, _nrt=False)
 def _cofactor(F, c):
     f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
     c[0] = f4 * f8 - f5 * f7
@@ -162,10 +164,10 @@ def _cofactor(F, c):
     c[8] = f0 * f4 - f1 * f3
 
 
-@njit(cache=True, fastmath=_FM)
-def _cofactor_tangent(F, d, c):
+@njit(cache=True, fastmath=_FM, _nrt=False)
+def _cofactor_tangent(F, dF, t, c):
     f0, f1, f2, f3, f4, f5, f6, f7, f8 = F[0], F[1], F[2], F[3], F[4], F[5], F[6], F[7], F[8]
-    d0, d1, d2, d3, d4, d5, d6, d7, d8 = d[0], d[1], d[2], d[3], d[4], d[5], d[6], d[7], d[8]
+    d0, d1, d2, d3, d4, d5, d6, d7, d8 = dF[t, 0], dF[t, 1], dF[t, 2], dF[t, 3], dF[t, 4], dF[t, 5], dF[t, 6], dF[t, 7], dF[t, 8]
     c[0] = d4 * f8 + f4 * d8 - d5 * f7 - f5 * d7
     c[1] = d5 * f6 + f5 * d6 - d3 * f8 - f3 * d8
     c[2] = d3 * f7 + f3 * d7 - d4 * f6 - f4 * d6
@@ -328,7 +330,7 @@ def element_forces_tangent(x, v, dx, dv, tets, grad_n, volume, mu, lam, dmu, dla
                     dP[c] = (2.0 * dm * (F[c] - R[c]) + 2.0 * mu_e * (dF[t, c] - dR[t, c])
                              + (dl * trm + lam_e * dtrm) * R[c] + lam_e * trm * dR[t, c])
             else:
-                _cofactor_tangent(F, dF[t], dcof)
+                _cofactor_tangent(F, dF, t, dcof)
                 dJ = 0.0
                 for c in range(9):
                     dJ += cof[c] * dF[t, c]
