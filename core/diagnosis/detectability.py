@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.nuisance import FreeBeside, Nuisance, model_form_worlds
 from core.diagnosis.results import Detectability
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
@@ -54,31 +54,50 @@ POWER = 0.8
 """A kind's ``min_size`` is claimed with this probability (the minimum detectable effect at 80 % power)."""
 
 
-def _min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed: dict, critical: float) -> float | None:
-    """The smallest size of ``cls`` with the ``assumed`` parameters that the round's test
-    would claim with probability :data:`POWER`: the strength whose noise-free held-out
-    statistic, plus the noise's part at that power (from the session's own replicates,
-    :meth:`HeldOutTest.min_strength`), reaches ``critical``. The nuisances keep their bounds (a
-    0.8 mm sag is not a 0.2 mm registration error), so this is solved by bisection on the
-    bounded projection. The signature is simulated at the reference size and scaled, then
-    once more at the size found (the change is not linear in the size for every kind)."""
-    size = float(cls.reference_size)
+def _prefetch_signatures(ev: Evidence, rnd: "Round", effects: list[dict]) -> None:
+    """The runs :func:`_signature` needs of each effect, train and validation of all of them
+    in one executor map (then read from the runs cache): asked one effect at a time, a
+    signature is two maps, the second a single validation sequence on one worker."""
+    specs = [Spec(tuple(rnd.fixed) + (e,), rnd.youngs_modulus) for e in effects]
+    if specs:
+        ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
+
+
+def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[tuple[dict, float]]) -> list[float | None]:
+    """For each ``(assumed, critical)`` of ``jobs``: the smallest size of ``cls`` with the
+    ``assumed`` parameters that the round's test would claim with probability
+    :data:`POWER`: the strength whose noise-free held-out statistic, plus the noise's part at
+    that power (from the session's own replicates, :meth:`HeldOutTest.min_strength`),
+    reaches ``critical``. The nuisances keep their bounds (a 0.8 mm sag is not a 0.2 mm
+    registration error), so this is solved by bisection on the bounded projection. The
+    signature is simulated at the reference size and scaled, then once more at the size
+    found (the change is not linear in the size for every kind); each of the two steps
+    simulates every job's signature in one map. None where no size up to the kind's
+    largest would be claimed."""
+    sizes = [float(cls.reference_size)] * len(jobs)
+    found: list[float | None] = [None] * len(jobs)
     s_max = cls.strength(cls.max_size)
-    found = None
+    todo = list(range(len(jobs)))
     for _ in range(2):
-        sig = _signature(ev, rnd, cls.sized(size, ctx, **assumed).to_dict())
-        st = cls.strength(size)
-        if sig is None or st == 0:
-            return found
-        D_t, D_v = sig[0] / st, sig[1] / st
-        s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER,
-                                  expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
-        if s is None:
-            return None
-        found = cls.size_at(s)
-        if abs(found - size) <= 0.05 * max(abs(size), 1e-12):
-            break
-        size = found
+        _prefetch_signatures(ev, rnd, [cls.sized(sizes[j], ctx, **jobs[j][0]).to_dict() for j in todo])
+        again = []
+        for j in todo:
+            assumed, critical = jobs[j]
+            sig = _signature(ev, rnd, cls.sized(sizes[j], ctx, **assumed).to_dict())
+            st = cls.strength(sizes[j])
+            if sig is None or st == 0:
+                continue
+            D_t, D_v = sig[0] / st, sig[1] / st
+            s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER,
+                                      expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
+            if s is None:
+                found[j] = None
+                continue
+            found[j] = cls.size_at(s)
+            if abs(found[j] - sizes[j]) > 0.05 * max(abs(sizes[j]), 1e-12):
+                sizes[j] = found[j]
+                again.append(j)
+        todo = again
     return found
 
 
@@ -129,7 +148,9 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
             return found, label
         specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in worlds]
                  + [Spec(fixed + (eff,), E, **f) for _, f in worlds])
-        vec = {role: [ev.vector(run) for run in ev.runs(specs, role)] for role in ("train", "validation")}
+        roles = ("train", "validation")
+        vec = {role: [ev.vector(run) for run in runs]
+               for role, runs in zip(roles, ev.runs_together([Request(specs, role) for role in roles]))}
         D_t, D_v = (vec["train"][0] - rnd.r_train) / st, (vec["validation"][0] - rnd.r_validation) / st
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))):
             return found, label
@@ -351,20 +372,26 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         raised = []  # whether the model-form bar was above a placement's critical value
         bars = {}  # repr(assumed): the statistic a claim of that placement needed
 
-        def size_of(assumed):
-            """(min_size or None, True) of ``assumed``; (None, False) when its signature diverged."""
-            critical = shared
-            if critical is None:
-                sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
-                if sig is None:
-                    return None, False
-                critical = max(rnd.test.critical(rnd.test.null(sig[0][:, None], sig[1][:, None]), level), 0.0)
-            raised.append(t_mf > critical)
-            bars[repr(assumed)] = max(critical, t_mf)
-            size = _min_size(ev, rnd, cls, ctx, assumed, max(critical, t_mf))
-            return (None if size is None or size > cls.max_size else size), True
+        def sizes_of(placements):
+            """[(min_size or None, assumed)] of the ``placements`` whose signature did not
+            diverge, their signatures simulated together (:func:`_min_sizes`)."""
+            _prefetch_signatures(ev, rnd, [cls.sized(cls.reference_size, ctx, **a).to_dict() for a in placements])
+            jobs = []
+            for assumed in placements:
+                critical = shared
+                if critical is None:
+                    sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
+                    if sig is None:
+                        continue
+                    critical = max(rnd.test.critical(rnd.test.null(sig[0][:, None], sig[1][:, None]), level), 0.0)
+                raised.append(t_mf > critical)
+                bars[repr(assumed)] = max(critical, t_mf)
+                jobs.append((assumed, max(critical, t_mf)))
+            sizes = _min_sizes(ev, rnd, cls, ctx, jobs)
+            return [(None if size is None or size > cls.max_size else size, assumed)
+                    for size, (assumed, _) in zip(sizes, jobs)]
 
-        sized = [(size, assumed) for assumed in options for size, ok in [size_of(assumed)] if ok]
+        sized = sizes_of(options)
         best = _pick(sized, cls.assume)
         size, assumed = best if best is not None else (None, {})
         world, replay_size = "", size
@@ -388,7 +415,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
             if near:
                 # how far a press's reach extends: the least detectable of the placements
                 # one beside_distance to the side of the best one
-                far = _pick([(s, a) for a in near for s, ok in [size_of(a)] if ok], "least_detectable")
+                far = _pick(sizes_of(list(near)), "least_detectable")
                 far_size = None if far is None else far[0]
                 params["beside"] = {"distance": cls.beside_distance, "min_size": far_size}
                 if far_size is not None:  # held to the model-form worlds as the best placement is

@@ -64,7 +64,7 @@ import numpy as np
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability, unobservable
-from core.diagnosis.evidence import Directions, Evidence, Spec, drop_binned_points
+from core.diagnosis.evidence import Directions, Evidence, FieldRun, Request, Spec, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
@@ -182,11 +182,14 @@ def _trusted_columns(J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
 
 
 def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: np.ndarray,
-                         r_v: np.ndarray) -> np.ndarray | None:
-    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity, or with
-    ``cfg.sensitivities`` False a forward difference."""
+                         r_v: np.ndarray, runs: list[FieldRun] | None = None) -> np.ndarray | None:
+    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity (from
+    ``runs``, the validation runs of :func:`_held_out_requests`' jacobian request, when
+    given), or with ``cfg.sensitivities`` False a forward difference."""
     if ev.cfg.sensitivities:
-        J = ev.jacobian(ev.jacobian_runs([Directions(tuple(fixed), cand, x, E)], "validation")[0])
+        if runs is None:
+            runs = ev.jacobian_runs([Directions(tuple(fixed), cand, x, E)], "validation")[0]
+        J = ev.jacobian(runs)
         return J if np.all(np.isfinite(J)) else None
     pts = []
     for j, h in enumerate(cand.steps):
@@ -204,15 +207,49 @@ def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x:
     return J if np.all(np.isfinite(J)) else None
 
 
-def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
-            channels: dict[str, np.ndarray], start: np.ndarray | None = None) -> _Evidence:
-    """Fit ``cand`` on train beside the round's nuisances and judge it on validation
-    (from ``start`` when given, else from the kind's starts; its look-elsewhere factor is
-    the kind's declared ``searches`` either way); ``channels``: :func:`_channel_masks` of
-    the validation vector."""
-    fit = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance, start=start)
+def _held_out_requests(ev: Evidence, cand: FitSpace, rnd: _Round, fit: Fit) -> list[Request]:
+    """The runs :func:`_judge` needs of a fit: the round's model plus the fitted cause on
+    train and validation, and with exact sensitivities its validation signature."""
     spec = Spec(tuple(rnd.fixed) + tuple(fit.effects), rnd.youngs_modulus)
-    tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
+    reqs = [Request([spec], "train"), Request([spec], "validation")]
+    if fit.jacobian is not None and ev.cfg.sensitivities:
+        d = Directions(tuple(rnd.fixed), cand, fit.x[: len(cand.names)], rnd.youngs_modulus)
+        reqs.append(Request([d], "validation", jacobian=True))
+    return reqs
+
+
+def _assess_all(ev: Evidence, cands: dict[str, FitSpace], rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
+                channels: dict[str, np.ndarray], starts: dict[str, np.ndarray | None] | None = None,
+                progress: Callable[[int, str], None] | None = None) -> dict[str, _Evidence]:
+    """Fit every kind of ``cands`` on train beside the round's nuisances (from ``starts[kind]``
+    when given, else from the kind's starts; its look-elsewhere factor is the kind's declared
+    ``searches`` either way), then judge each on validation (:func:`_judge`). The fits run
+    one after another; their held-out runs (a validation sequence each, one worker's work
+    when asked alone) all go through one executor map."""
+    starts = starts or {}
+    fits = {}
+    for i, (kind, cand) in enumerate(cands.items()):
+        if progress is not None:
+            progress(i, kind)
+        fits[kind] = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance,
+                                   start=starts.get(kind))
+    reqs = {kind: _held_out_requests(ev, cand, rnd, fits[kind]) for kind, cand in cands.items()}
+    flat = ev.runs_together([r for rs in reqs.values() for r in rs])
+    out, at = {}, 0
+    for kind, cand in cands.items():
+        got = [runs[0] for runs in flat[at: at + len(reqs[kind])]]
+        at += len(reqs[kind])
+        out[kind] = _judge(ev, cand, rnd, cfg, n_kinds, channels, fits[kind], got[0], got[1],
+                           got[2] if len(got) > 2 else None)
+    return out
+
+
+def _judge(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
+           channels: dict[str, np.ndarray], fit: Fit, tr: list[FieldRun], va: list[FieldRun],
+           jac_v: list[FieldRun] | None) -> _Evidence:
+    """A candidate's held-out evidence from its fit and the runs of :func:`_held_out_requests`
+    (``tr``, ``va``: the fitted model on train and validation; ``jac_v``: its validation
+    signature runs, or None); ``channels``: :func:`_channel_masks` of the validation vector."""
     r_t, r_v = ev.vector(tr), ev.vector(va)
     h = rnd.nuisance.held_out(r_v, r_t)
     e_v = rnd.nuisance.held_out(rnd.r_validation, rnd.r_train)
@@ -227,7 +264,7 @@ def _assess(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_k
     # change; a null without it let a fit far from linear pass with any held-out drop)
     cols_t, cols_v = [r_t - rnd.r_train], [r_v - rnd.r_validation]
     if fit.jacobian is not None:
-        J_v = _validation_jacobian(ev, cand, rnd.fixed, rnd.youngs_modulus, fit.x[: len(cand.names)], r_v)
+        J_v = _validation_jacobian(ev, cand, rnd.fixed, rnd.youngs_modulus, fit.x[: len(cand.names)], r_v, jac_v)
         if J_v is not None:
             cols_t, cols_v = list(fit.jacobian[:, : len(cand.names)].T) + cols_t, list(J_v.T) + cols_v
     J_t, J_v = np.stack(cols_t, axis=1), np.stack(cols_v, axis=1)
@@ -322,16 +359,14 @@ def diagnose_prepared(
 
     say(0.02, "replaying the base model")
     notes: list[str] = []
-    for role in ("train", "validation"):
-        failed = ev.discrepancy(role)
-        if failed:
-            # the finer mesh can fail where the replay's own does not (a deep press inverting
-            # its small elements under the probe): carry on with the replay's mesh alone, and
-            # say so, rather than give no answer
-            notes.append(f"the fine-mesh reference diverged on {', '.join(failed)}: the diagnosis ran without it "
-                         "(no mesh nuisance, no fine-mesh discrepancy, noise from the replay's own mesh)")
-            cfg = ev.drop_fine_reference()
-            break
+    failed = ev.discrepancy(("train", "validation"))
+    if failed:
+        # the finer mesh can fail where the replay's own does not (a deep press inverting
+        # its small elements under the probe): carry on with the replay's mesh alone, and
+        # say so, rather than give no answer
+        notes.append(f"the fine-mesh reference diverged on {', '.join(failed)}: the diagnosis ran without it "
+                     "(no mesh nuisance, no fine-mesh discrepancy, noise from the replay's own mesh)")
+        cfg = ev.drop_fine_reference()
     base = {role: ev.runs([[]], role)[0] for role in ("train", "validation")}
     all_base = base["train"] + base["validation"]
     if not all(r.ok for r in all_base):
@@ -377,15 +412,14 @@ def diagnose_prepared(
         last, last_evidence = rnd, {}
         if rnd_i == cfg.max_causes or not active:
             break
-        evid: dict[str, _Evidence] = {}
-        for i, kind in enumerate(active):
-            say(0.05 + 0.6 * (rnd_i + (i + 1) / (len(active) + 1)) / (cfg.max_causes + 1), f"round {rnd_i}: fitting {kind}")
-            # a later round starts each kind from its fit of the round before (the model
-            # gained a cause; the kind's optimum moves, its basin rarely does)
-            prev = last_fits.get(kind)
-            evid[kind] = _assess(ev, cands[kind], rnd, cfg, len(active), channels_v,
-                                 start=None if prev is None else prev.x[: len(cands[kind].names)])
-            last_fits[kind] = evid[kind].fit
+        # a later round starts each kind from its fit of the round before (the model
+        # gained a cause; the kind's optimum moves, its basin rarely does)
+        evid = _assess_all(
+            ev, {k: cands[k] for k in active}, rnd, cfg, len(active), channels_v,
+            starts={k: f.x[: len(cands[k].names)] for k, f in last_fits.items()},
+            progress=lambda i, kind: say(0.05 + 0.6 * (rnd_i + (i + 1) / (len(active) + 1)) / (cfg.max_causes + 1),
+                                         f"round {rnd_i}: fitting {kind}"))
+        last_fits.update({k: e.fit for k, e in evid.items()})
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
         # a kind is claimed when Holm's procedure rejects its absence and it passes
@@ -443,7 +477,7 @@ def diagnose_prepared(
             def extra(kind: str, given: str) -> bool:
                 g = evid[given].fit
                 sub = _Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
-                e = _assess(ev, cands[kind], sub, cfg, len(active), channels_v)
+                e = _assess_all(ev, {kind: cands[kind]}, sub, cfg, len(active), channels_v)[kind]
                 return e.p_value <= cfg.alpha / max(len(active), 1)
 
             survivors = [best]
@@ -528,11 +562,10 @@ def diagnose_prepared(
     # refits), taken now: the runs cache is then emptied, since the test stage replays
     # only test sequences (a paper-size diagnosis held 0.5 GiB of runs through it)
     base_spec = ev.spec([], E_base)
-    ext_spec = ev.spec(ext_effects, E_ext) if claimed else base_spec
-    base_train = ev.runs([base_spec], "train", fine=True)[0]
-    base_val = ev.runs([base_spec], "validation", fine=True)[0]
-    ext_train = ev.runs([ext_spec], "train", fine=True)[0]
-    ext_val = ev.runs([ext_spec], "validation", fine=True)[0]
+    ext_spec = ev.spec(ext_effects, E_ext)
+    shown = [base_spec, ext_spec if claimed else base_spec]
+    (base_train,), (base_val,), (ext_train,), (ext_val,) = ev.runs_together(
+        [Request([m], role, fine=True) for m in shown for role in ("train", "validation")])
     ev.cache.clear()
     # what the report needs of the selection rounds, kept; the rounds' nuisances, nulls and
     # runs freed, and the workers' binned train and validation points with them
@@ -546,9 +579,11 @@ def diagnose_prepared(
     # test errors: base, each cause alone, extended
     say(0.9, "measuring the gain on the test sequences")
     test_blocks = ev.frame_blocks("test")
-    base_test = ev.runs([base_spec], "test", paper=True, fine=True)[0]
+    # the base, the extended model and each cause alone on test, in one map
+    base_test, ext_runs, *cause_runs = ev.runs_together(
+        [Request([base_spec, ext_spec] + [ev.spec(f.effects, E_ext) for _, f, _ in claimed], "test",
+                 paper=True, fine=True)])[0]
     b_err, b_s, b_c = test_error(base_test)
-    ext_runs = ev.runs([ev.spec(ext_effects, E_ext)], "test", paper=True, fine=True)[0]
     e_err, e_s, _ = test_error(ext_runs)
     gain = 1.0 - e_err / b_err if b_err > 0 else 0.0
     gain_iv = gain_interval((b_s, b_c), (e_s, b_c), test_blocks, cfg.n_boot, rng) if claimed else (0.0, 0.0)
@@ -558,8 +593,7 @@ def diagnose_prepared(
         force = {"noise_N": ev.force_sigma.tolist(), "base_youngs_modulus": E_base,
                  "baseline_test_rms_N": fb, "extended_test_rms_N": fe, "gain": 1.0 - fe / fb if fb > 0 else 0.0}
     causes = []
-    for c, f, rep in claimed:
-        runs_c = ev.runs([ev.spec(f.effects, E_ext)], "test", paper=True, fine=True)[0]
+    for (c, f, rep), runs_c in zip(claimed, cause_runs):
         err, _, _ = test_error(runs_c)
         extra = {}
         if joint:

@@ -49,7 +49,7 @@ from typing import Sequence
 
 import numpy as np
 
-from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.evidence import Evidence, Request, Spec
 
 __all__ = ["Nuisance", "FreeBeside", "nuisance_columns", "model_form_ends", "model_form_worlds", "model_form_drops", "VARIANTS", "BOUNDS"]
 
@@ -317,7 +317,7 @@ def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisa
     if not ends:
         return {}
     specs = [Spec(tuple(fixed), float(E), **fields) for _, fields in ends]
-    trains, valids = ev.runs(specs, "train"), ev.runs(specs, "validation")
+    trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
     e_v = nuis.held_out(r_validation, r_train)
     before = float(e_v @ e_v)
     out = {}
