@@ -41,8 +41,8 @@ class DiagnosisConfig:
             onto the fine grid's. Measured on a 6 s session, 1/60 s against 1/120 s: fields
             within 0.002 mm (noise 0.77 mm), forces within 1-4 mN (noise 8 mN).
         fine_fit_dt: time step (s) of the fits on ``fine_grid`` (the final refit of the
-            claimed causes and of E; None: the simulator's 1/120 s). Its errors and the
-            reported fields step at 1/120 s. Measured on a 4 x 12 s session, 25x9x9 at 1/60
+            claimed causes and of E, and the fields shown on train and validation; None: the
+            simulator's 1/120 s). The errors on test step at 1/120 s. Measured on a 4 x 12 s session, 25x9x9 at 1/60
             against 1/120 s: fields within 0.001 mm RMS (0.02 mm at most), forces within
             4-20 mN at load changes (noise 3-15 mN), 1.7x faster.
         layout_bins: bins of the residual field along x and y of the top face.
