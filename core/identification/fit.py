@@ -341,20 +341,23 @@ def fit_youngs_modulus(
 
     scale = (refined_value / E_star) if refined_value else 1.0
     model_form = None
-    if identifiable and stl:
-        reason += "; the model-form spread (other laws, Poisson's ratios, grids) is measured on box grids only"
-    elif identifiable and use_force:
-        # the interval holds E under other laws, Poisson's ratios and grids (model form)
+    if identifiable and use_force:
+        # the interval holds E under other laws, Poisson's ratios and meshes (model form):
+        # the box's grids, or an STL phantom's own mesh at its element size and half of it
         from core.identification.model_form import youngs_model_form
 
         _say(progress, obj, "model form (force)")
-        model_form = youngs_model_form(prepared, base.effects, E_star, names=names, executor=executor)
+        model_form = youngs_model_form(prepared, base.effects, E_star, names=names, executor=executor,
+                                       element_size=base.element_size)
         obj.evaluations += len(model_form["variants"]) * len(names)
         if model_form["low"] is not None:
             lo_i = min(lo_i, model_form["low"] / scale * (lo_i / E_star))
             hi_i = max(hi_i, model_form["high"] / scale * (hi_i / E_star))
             reason += (f"; widened to the model form: E refitted under {len(model_form['variants'])} laws, "
                        f"Poisson's ratios and grids spans {model_form['low']:.3g}-{model_form['high']:.3g} Pa")
+    elif identifiable and stl:
+        reason += ("; the model-form spread without force (E refitted to the surface under other laws and "
+                   "Poisson's ratios) is not measured on an STL phantom")
     elif identifiable:
         # no force: a body force's sag (or a foundation) sets E, and the sag depends on the
         # law and on Poisson's ratio too; E is refitted to the surface under each

@@ -33,7 +33,7 @@ from core.identification.execution import Executor, SerialExecutor
 from core.preparation import PreparedSession
 from core.simulation import SimulationConfig
 
-__all__ = ["ModelFormVariant", "VARIANTS", "youngs_model_form"]
+__all__ = ["ModelFormVariant", "VARIANTS", "youngs_model_form", "variant_element_sizes"]
 
 
 @dataclass(frozen=True)
@@ -64,11 +64,23 @@ VARIANTS: tuple[ModelFormVariant, ...] = tuple(
     + [ModelFormVariant(COARSE, "stable_yeoh", 0.44, k) for k in (1.0, 2.0)])
 """The model-form variants of the modulus on the coarse grid (see the module docstring)."""
 
-def _force_trial(prepared: PreparedSession, name: str, effects, E: float, v: ModelFormVariant, dt: float):
-    from core.simulation import Material, box_mesh, build_model, effect_from_dict, simulate
+def _variant_mesh(prepared: PreparedSession, v: ModelFormVariant, element_size: float | None):
+    """The mesh a variant is replayed on: the box grid ``v.grid`` of the session's size, or
+    for a phantom given by ``phantom.stl`` its own mesh at ``element_size`` (m)."""
+    from core.simulation import box_mesh
+    from core.simulation.meshing import phantom_mesh
+
+    if prepared.stl_path is None:
+        return box_mesh(prepared.size, v.grid)
+    return phantom_mesh(prepared.size, prepared.stl_path, grid=v.grid, element_size=element_size)
+
+
+def _force_trial(prepared: PreparedSession, name: str, effects, E: float, v: ModelFormVariant, dt: float,
+                 element_size: float | None = None):
+    from core.simulation import Material, build_model, effect_from_dict, simulate
 
     seq = prepared.sequences[name]
-    model = build_model(box_mesh(prepared.size, v.grid), prepared.mass,
+    model = build_model(_variant_mesh(prepared, v, element_size), prepared.mass,
                         Material(E, v.poisson_ratio, v.law, stiffening=v.stiffening), SimulationConfig(dt=dt),
                         [effect_from_dict(dict(e)) for e in effects])
     sim = simulate(model, seq.probe, prepared.probe_radius, seq.frame_times)
@@ -76,14 +88,39 @@ def _force_trial(prepared: PreparedSession, name: str, effects, E: float, v: Mod
 
 
 def _run(prepared: PreparedSession, item) -> np.ndarray | None:
-    name, effects, E, v, dt = item
-    return _force_trial(prepared, name, effects, E, v, dt)
+    name, effects, E, v, dt, h = item
+    return _force_trial(prepared, name, effects, E, v, dt, h)
+
+
+def variant_element_sizes(prepared: PreparedSession, element_size: float | None) -> dict | None:
+    """{COARSE: h, FINE: h_fine} (m) of a phantom given by ``phantom.stl``: the replay's
+    element size (None: the mesher's default) and half the mean edge of that mesh, as the
+    diagnosis's fine reference and the E fit's refinement take it; None for the box, whose
+    variants are the grids :data:`COARSE` and :data:`FINE`."""
+    if prepared.stl_path is None:
+        return None
+    from core.simulation.meshing import mean_edge_length
+    from core.simulation.replay import replay_mesh
+
+    coarse = replay_mesh(prepared, COARSE, element_size)
+    return {COARSE: element_size, FINE: (element_size or mean_edge_length(coarse)) / 2.0}
+
+
+def _label(v: ModelFormVariant, sizes: dict | None, mesh: tuple[int, int, int] | None = None) -> str:
+    """A variant's label; on a phantom's own mesh its element size instead of the grid
+    (the coarse one "the replay's mesh" when the mesher chose it)."""
+    grid = mesh or v.grid
+    if sizes is None:
+        return ModelFormVariant(grid, v.law, v.poisson_ratio, v.stiffening).label
+    law = v.law if v.law != "stable_yeoh" else f"yeoh k={v.stiffening:g}"
+    h = sizes[grid]
+    return f"{law}, nu {v.poisson_ratio:g}, " + ("the replay's mesh" if h is None else f"elements {1e3 * h:.1f} mm")
 
 
 def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs_modulus: float, *,
                       names: Sequence[str] | None = None, executor: Executor | None = None,
                       variants: Sequence[ModelFormVariant] = VARIANTS, clock_offset: float = 0.0,
-                      dt: float = 1.0 / 60.0) -> dict:
+                      dt: float = 1.0 / 60.0, element_size: float | None = None) -> dict:
     """E refitted to the measured force under each model-form variant.
 
     Args:
@@ -92,6 +129,10 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
         youngs_modulus: the model's E, Pa. names: sequences (default: the train ones).
         clock_offset: the robot clock's lead, s (the force read at t + offset).
         dt: the variants' time step, s.
+        element_size: the replay's element size (m) of a phantom given by ``phantom.stl``
+            (None: the mesher's default): its variants run on its own mesh at this size
+            and, for the fine one, at half its mean edge (:func:`variant_element_sizes`);
+            the box's on the grids.
 
     Returns:
         ``{"variants": [{"model": label, "youngs_modulus": Pa or None}], "low": Pa,
@@ -106,7 +147,9 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
     sigma = np.maximum(np.sqrt(np.mean(rest**2, axis=0)), 1e-3) if rest.shape[0] >= 10 else np.ones(3)
     fine_ref = ModelFormVariant(FINE, REFERENCE.law, REFERENCE.poisson_ratio)
     runs = [REFERENCE, fine_ref, *variants]
-    items = [(n, tuple(effects), float(youngs_modulus), v, dt) for v in runs for n in names]
+    sizes = variant_element_sizes(prepared, element_size)
+    items = [(n, tuple(effects), float(youngs_modulus), v, dt, None if sizes is None else sizes[v.grid])
+             for v in runs for n in names]
     forces = executor.map(_run, prepared, items)
     fitted, k = [], 0
     for v in runs:
@@ -125,12 +168,12 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
         fitted.append(float(youngs_modulus) * num / den if ok and den > 0 and num > 0 else None)
     ref, ref_fine = fitted[0], fitted[1]
     ratio = ref_fine / ref if ref and ref_fine else None
-    out = [{"model": REFERENCE.label, "youngs_modulus": ref}, {"model": fine_ref.label, "youngs_modulus": ref_fine}]
+    out = [{"model": _label(REFERENCE, sizes), "youngs_modulus": ref},
+           {"model": _label(fine_ref, sizes), "youngs_modulus": ref_fine}]
     for v, E_v in zip(variants, fitted[2:]):
-        out.append({"model": v.label, "youngs_modulus": E_v})
+        out.append({"model": _label(v, sizes), "youngs_modulus": E_v})
         if ratio is not None and v.grid == COARSE:
-            out.append({"model": ModelFormVariant(FINE, v.law, v.poisson_ratio, v.stiffening).label
-                        + " (the reference's fine/coarse ratio)",
+            out.append({"model": _label(v, sizes, FINE) + " (the reference's fine/coarse ratio)",
                         "youngs_modulus": None if E_v is None else E_v * ratio})
     vals = [o["youngs_modulus"] for o in out if o["youngs_modulus"] is not None]
     return {"variants": out, "low": min(vals) if vals else None, "high": max(vals) if vals else None,
