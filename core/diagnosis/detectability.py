@@ -32,14 +32,20 @@ __all__ = ["detectability", "unobservable", "unsettled"]
 
 
 
-def _signature(ev: Evidence, rnd: "Round", effect: dict) -> tuple[np.ndarray, np.ndarray] | None:
-    """(train, validation) change of the residual vectors when ``effect`` joins the round's model."""
-    spec = Spec(tuple(rnd.fixed) + (effect,), rnd.youngs_modulus)
-    tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
-    d_t, d_v = ev.vector(tr) - rnd.r_train, ev.vector(va) - rnd.r_validation
-    if not (np.all(np.isfinite(d_t)) and np.all(np.isfinite(d_v))):
-        return None
-    return d_t, d_v
+def _signatures(ev: Evidence, rnd: "Round", effects: list[dict]) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """(train, validation) change of the residual vectors when each effect joins the round's
+    model (None where it diverged); the runs of every effect on both roles go through one
+    executor map (asked one effect at a time, a signature was two maps, the second a
+    single validation sequence on one worker)."""
+    specs = [Spec(tuple(rnd.fixed) + (e,), rnd.youngs_modulus) for e in effects]
+    if not specs:
+        return []
+    trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
+    out = []
+    for tr, va in zip(trains, valids):
+        d_t, d_v = ev.vector(tr) - rnd.r_train, ev.vector(va) - rnd.r_validation
+        out.append((d_t, d_v) if np.all(np.isfinite(d_t)) and np.all(np.isfinite(d_v)) else None)
+    return out
 
 
 def _expected_statistic(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, s: float, sigma2: float) -> float:
@@ -54,16 +60,8 @@ POWER = 0.8
 """A kind's ``min_size`` is claimed with this probability (the minimum detectable effect at 80 % power)."""
 
 
-def _prefetch_signatures(ev: Evidence, rnd: "Round", effects: list[dict]) -> None:
-    """The runs :func:`_signature` needs of each effect, train and validation of all of them
-    in one executor map (then read from the runs cache): asked one effect at a time, a
-    signature is two maps, the second a single validation sequence on one worker."""
-    specs = [Spec(tuple(rnd.fixed) + (e,), rnd.youngs_modulus) for e in effects]
-    if specs:
-        ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
-
-
-def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[tuple[dict, float]]) -> list[float | None]:
+def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[tuple[dict, float]],
+               first: list | None = None) -> list[float | None]:
     """For each ``(assumed, critical)`` of ``jobs``: the smallest size of ``cls`` with the
     ``assumed`` parameters that the round's test would claim with probability
     :data:`POWER`: the strength whose noise-free held-out statistic, plus the noise's part at
@@ -72,18 +70,19 @@ def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[
     registration error), so this is solved by bisection on the bounded projection. The
     signature is simulated at the reference size and scaled, then once more at the size
     found (the change is not linear in the size for every kind); each of the two steps
-    simulates every job's signature in one map. None where no size up to the kind's
-    largest would be claimed."""
+    simulates every job's signature in one map (the first step's are ``first`` when the
+    caller has them, :func:`_signatures` at the reference size). None where no size up to
+    the kind's largest would be claimed."""
     sizes = [float(cls.reference_size)] * len(jobs)
     found: list[float | None] = [None] * len(jobs)
     s_max = cls.strength(cls.max_size)
     todo = list(range(len(jobs)))
-    for _ in range(2):
-        _prefetch_signatures(ev, rnd, [cls.sized(sizes[j], ctx, **jobs[j][0]).to_dict() for j in todo])
+    for step in range(2):
+        sigs = (first if step == 0 and first is not None
+                else _signatures(ev, rnd, [cls.sized(sizes[j], ctx, **jobs[j][0]).to_dict() for j in todo]))
         again = []
-        for j in todo:
-            assumed, critical = jobs[j]
-            sig = _signature(ev, rnd, cls.sized(sizes[j], ctx, **assumed).to_dict())
+        for j, sig in zip(todo, sigs):
+            critical = jobs[j][1]
             st = cls.strength(sizes[j])
             if sig is None or st == 0:
                 continue
@@ -375,19 +374,19 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         def sizes_of(placements):
             """[(min_size or None, assumed)] of the ``placements`` whose signature did not
             diverge, their signatures simulated together (:func:`_min_sizes`)."""
-            _prefetch_signatures(ev, rnd, [cls.sized(cls.reference_size, ctx, **a).to_dict() for a in placements])
-            jobs = []
-            for assumed in placements:
+            sigs = _signatures(ev, rnd, [cls.sized(cls.reference_size, ctx, **a).to_dict() for a in placements])
+            jobs, first = [], []
+            for assumed, sig in zip(placements, sigs):
                 critical = shared
                 if critical is None:
-                    sig = _signature(ev, rnd, cls.sized(cls.reference_size, ctx, **assumed).to_dict())
                     if sig is None:
                         continue
                     critical = max(rnd.test.critical(rnd.test.null(sig[0][:, None], sig[1][:, None]), level), 0.0)
                 raised.append(t_mf > critical)
                 bars[repr(assumed)] = max(critical, t_mf)
                 jobs.append((assumed, max(critical, t_mf)))
-            sizes = _min_sizes(ev, rnd, cls, ctx, jobs)
+                first.append(sig)
+            sizes = _min_sizes(ev, rnd, cls, ctx, jobs, first)
             return [(None if size is None or size > cls.max_size else size, assumed)
                     for size, (assumed, _) in zip(sizes, jobs)]
 

@@ -182,13 +182,11 @@ def _trusted_columns(J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
 
 
 def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: np.ndarray,
-                         r_v: np.ndarray, runs: list[FieldRun] | None = None) -> np.ndarray | None:
-    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity (from
-    ``runs``, the validation runs of :func:`_held_out_requests`' jacobian request, when
-    given), or with ``cfg.sensitivities`` False a forward difference."""
+                         r_v: np.ndarray, runs: list[FieldRun] | None) -> np.ndarray | None:
+    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity (``runs``,
+    the validation runs of :func:`_held_out_requests`' jacobian request), or with
+    ``cfg.sensitivities`` False a forward difference."""
     if ev.cfg.sensitivities:
-        if runs is None:
-            runs = ev.jacobian_runs([Directions(tuple(fixed), cand, x, E)], "validation")[0]
         J = ev.jacobian(runs)
         return J if np.all(np.isfinite(J)) else None
     pts = []

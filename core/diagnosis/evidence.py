@@ -13,12 +13,12 @@ spirit of Kennedy & O'Hagan 2001).
 from __future__ import annotations
 
 import math
-from collections import OrderedDict
 from dataclasses import dataclass, fields as dataclass_fields, replace
 from typing import NamedTuple, Sequence
 
 import numpy as np
 
+from core.diagnosis.caching import LruCache
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.fields import FieldLayout, frame_bins, residual_field, residual_field_tangent
 from core.errors import TissueTwinError
@@ -26,7 +26,7 @@ from core.identification.execution import Executor
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
 from core.preparation import PreparedSession, release_pages
-from core.simulation.meshing import mean_edge_length
+from core.simulation.meshing import refined_element_size
 from core.simulation.replay import build_replay_model, frame_errors, replay_mesh
 from core.simulation.effects import FitSpace
 from core.simulation.sensitivity import simulate_sensitivities
@@ -156,41 +156,6 @@ def _bins_bytes(hit) -> int:
     """Bytes of a :func:`_binned` entry ``(clouds, (points, bins, counts))`` (the clouds are the caller's)."""
     pts, idx, counts = hit[1]
     return int(pts.nbytes + idx.nbytes + counts.nbytes)
-
-
-class LruCache(OrderedDict):
-    """Values by key, least recently used first, at most ``limit`` bytes as ``size(value)``
-    counts them and at most ``max_items`` values (the most recent always stays). Holds the
-    diagnosis's field runs and a worker's binned points: a value dropped and asked for
-    again is computed again, and both are deterministic, so answers do not depend on the
-    limits, only the work does."""
-
-    def __init__(self, limit: int, size, max_items: int | None = None):
-        super().__init__()
-        self.limit, self.size, self.max_items, self.bytes = int(limit), size, max_items, 0
-        self.dropped: set = set()
-        """Keys the limits have evicted (a caller counts the work it repeats)."""
-
-    def get_recent(self, key):
-        """The value under ``key`` (marked recently used), or None."""
-        value = super().get(key)
-        if value is not None:
-            self.move_to_end(key)
-        return value
-
-    def put(self, key, value) -> None:
-        if key in self:
-            self.bytes -= self.size(self.pop(key))
-        self[key] = value
-        self.bytes += self.size(value)
-        while len(self) > 1 and (self.bytes > self.limit or (self.max_items is not None and len(self) > self.max_items)):
-            key, old = self.popitem(last=False)
-            self.bytes -= self.size(old)
-            self.dropped.add(key)
-
-    def clear(self) -> None:
-        super().clear()
-        self.bytes = 0
 
 
 _BINS = LruCache(BINS_CACHE_BYTES, _bins_bytes, max_items=16)
@@ -345,7 +310,7 @@ class Evidence:
         self.fine_element_size = None
         if prepared.stl_path is not None:
             coarse = replay_mesh(prepared, cfg.grid, cfg.element_size)
-            self.fine_element_size = (cfg.element_size or mean_edge_length(coarse)) / 2.0
+            self.fine_element_size = refined_element_size(coarse, cfg.element_size)
         self.sigma2 = 1.0  # the top face's point noise variance, m^2 (set by weigh_faces)
 
     @property

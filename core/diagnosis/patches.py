@@ -22,12 +22,12 @@ A patch layout is one noise group (``"surface"`` of :data:`core.diagnosis.fields
 from __future__ import annotations
 
 import hashlib
-from collections import OrderedDict
 
 import numpy as np
 from scipy import sparse
 from scipy.spatial import cKDTree
 
+from core.diagnosis.caching import LruCache
 from core.simulation.mesh import TetMesh
 from core.simulation.metrics import surface_operator
 
@@ -61,8 +61,7 @@ class SurfaceSampler:
         # triangles' cross products, for every frame in one sparse product
         self._incidence = sparse.csr_matrix((np.ones(3 * T), (self.triangles.T.ravel(), np.tile(np.arange(T), 3))),
                                             shape=(N, T))
-        self._samples: OrderedDict[bytes, np.ndarray] = OrderedDict()
-        self._samples_bytes = 0
+        self._samples = LruCache(self.SAMPLES_CACHE_BYTES, lambda a: a.nbytes)
 
     def nearest(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(distance (M,) m, index (M,)) of each point's nearest rest sample."""
@@ -78,16 +77,10 @@ class SurfaceSampler:
         dome run's field."""
         p = np.ascontiguousarray(points, dtype=np.float64).reshape(-1, 3)
         key = hashlib.blake2b(p.tobytes(), digest_size=16).digest()
-        hit = self._samples.get(key)
-        if hit is not None:
-            self._samples.move_to_end(key)
-            return hit
-        hit = self.tree.query(p)[1].astype(np.int64)
-        self._samples[key] = hit
-        self._samples_bytes += hit.nbytes
-        while len(self._samples) > 1 and self._samples_bytes > self.SAMPLES_CACHE_BYTES:
-            _, old = self._samples.popitem(last=False)
-            self._samples_bytes -= old.nbytes
+        hit = self._samples.get_recent(key)
+        if hit is None:
+            hit = self.tree.query(p)[1].astype(np.int64)
+            self._samples.put(key, hit)
         return hit
 
     def normals(self, positions: np.ndarray) -> np.ndarray:

@@ -57,7 +57,7 @@ from core.identification.sweep import PAPER_COARSE
 from core.identification.trials import Trial, run_trial
 from core.identification.verdict import MAX_RATIO, MIN_RISE, widen_interval, youngs_verdict
 from core.preparation import PreparedSession
-from core.simulation.meshing import mean_edge_length
+from core.simulation.meshing import refined_element_size
 from core.simulation.replay import noise_floor, replay_mesh
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
 
@@ -311,8 +311,7 @@ def fit_youngs_modulus(
     coarse_mesh = replay_mesh(prepared, base.grid, base.element_size)
     sizes = None
     if stl:  # an STL phantom: refine by halving the element size (Gmsh), as 2 n - 1 halves a grid's
-        h = base.element_size or mean_edge_length(coarse_mesh)
-        sizes = (base.element_size, h / 2.0)
+        sizes = (base.element_size, refined_element_size(coarse_mesh, base.element_size))
     refined_value = None
     if identifiable and refine_mesh:
         fine_base = replace(scored, element_size=sizes[1]) if stl else replace(scored, grid=refined)

@@ -99,11 +99,10 @@ def variant_element_sizes(prepared: PreparedSession, element_size: float | None)
     variants are the grids :data:`COARSE` and :data:`FINE`."""
     if prepared.stl_path is None:
         return None
-    from core.simulation.meshing import mean_edge_length
+    from core.simulation.meshing import refined_element_size
     from core.simulation.replay import replay_mesh
 
-    coarse = replay_mesh(prepared, COARSE, element_size)
-    return {COARSE: element_size, FINE: (element_size or mean_edge_length(coarse)) / 2.0}
+    return {COARSE: element_size, FINE: refined_element_size(replay_mesh(prepared, COARSE, element_size), element_size)}
 
 
 def _label(v: ModelFormVariant, sizes: dict | None, mesh: tuple[int, int, int] | None = None) -> str:

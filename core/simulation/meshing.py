@@ -43,6 +43,7 @@ __all__ = [
     "check_stl",
     "default_element_size",
     "mean_edge_length",
+    "refined_element_size",
     "mesh_quality",
     "phantom_mesh",
     "rcm_order",
@@ -174,6 +175,14 @@ def mean_edge_length(mesh: TetMesh) -> float:
     p = mesh.nodes[mesh.tets]
     pairs = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
     return float(np.mean([np.linalg.norm(p[:, b] - p[:, a], axis=1).mean() for a, b in pairs]))
+
+
+def refined_element_size(mesh: TetMesh, element_size: float | None) -> float:
+    """The element size (m) of a phantom mesh's refinement: half of ``element_size``, or of
+    ``mesh``'s mean edge when the mesher chose the size (the diagnosis's fine reference,
+    the E fit's refinement and E's model form all refine an STL phantom this way, as
+    ``2 n - 1`` nodes per axis halve a box grid's)."""
+    return (element_size or mean_edge_length(mesh)) / 2.0
 
 
 def default_element_size(volume: float, nodes: int = PAPER_NODES) -> float:

@@ -70,7 +70,7 @@ def test_a_dome_s_model_form_runs_on_its_own_mesh_at_both_element_sizes(dome):
     assert mf["fine_over_coarse"] == pytest.approx(ref_fine["youngs_modulus"] / ref["youngs_modulus"])
 
 
-def test_the_box_keeps_its_grid_variants(tmp_path):
+def test_the_box_keeps_its_grid_variants():
     from core.identification.model_form import FINE, COARSE, variant_element_sizes, _label, REFERENCE, VARIANTS
 
     class Box:
