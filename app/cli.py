@@ -285,6 +285,13 @@ def _parse_youngs(text: str) -> list[float]:
     return values
 
 
+def cmd_precompile(args) -> int:
+    from core.simulation.precompile import compile_kernels
+
+    print(f"simulation kernels compiled and cached in {compile_kernels():.1f} s")
+    return 0
+
+
 def cmd_sweep(args) -> int:
     from rich.console import Console
     from rich.table import Table
@@ -417,6 +424,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="workbench port (default 8000 or TISSUETWIN_PORT); the 3D viewer uses PORT + 1")
     _add_model_options(p)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("precompile", help="compile the simulation's kernels once (scripts/setup.sh runs it; "
+                                          "otherwise a fresh install's first replay spends about 100 s compiling)")
+    p.set_defaults(func=cmd_precompile)
     for register in _command_groups():
         register(sub)
     return parser

@@ -47,3 +47,6 @@ PYTHON="${PYTHON:-python3.11}"
 # torch first, pinned: the local CPU wheel. An unpinned torch would pull gigabytes of CUDA.
 .venv/bin/python -m pip install -q --disable-pip-version-check torch==2.13.0
 .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[dev]'
+# numba compiles the simulation's kernels on first use (about 100 s on 2 cores) and caches
+# them beside the sources; compile them here, once per install, not in a user's first replay.
+.venv/bin/tissuetwin precompile
