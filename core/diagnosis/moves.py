@@ -81,6 +81,23 @@ class Move:
         return float(self.knots_t[-1])
 
 
+def within_duration(moves: list[Move], lim: PlanLimits) -> list[Move]:
+    """The moves that fit in the plan's ``lim.duration`` on their own.
+
+    A move is never cut short (its hold and its return to rest are what make it
+    informative), so one longer than the whole plan cannot be part of it.
+
+    Raises:
+        PlanError: no move fits; the message names the shortest and its length.
+    """
+    fit = [m for m in moves if m.duration <= lim.duration + 1e-9]
+    if not fit:
+        shortest = min(moves, key=lambda m: m.duration) if moves else None
+        raise PlanError(f"no move fits in a {lim.duration:.1f} s plan" + (
+            f": the shortest, {shortest.name}, takes {shortest.duration:.1f} s" if shortest else ""))
+    return fit
+
+
 def press_move(name, description, face, start_above, approach, pressed, slide_to, lim: PlanLimits) -> Move:
     t, p = [0.0], [np.asarray(start_above, float)]
 

@@ -51,7 +51,7 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Spec
-from core.diagnosis.moves import Move, PlanError, PlanLimits, candidate_moves, move_path, surface_moves
+from core.diagnosis.moves import Move, PlanError, PlanLimits, candidate_moves, move_path, surface_moves, within_duration
 from core.diagnosis.patches import field_layout
 from core.diagnosis.nuisance import model_form_worlds, nuisance_columns
 from core.errors import TissueTwinError
@@ -204,7 +204,7 @@ def plan_experiment(
         A :class:`Plan`.
 
     Raises:
-        PlanError: no move fits the phantom within the limits.
+        PlanError: no move fits the phantom within the limits (depth, margins, duration).
     """
     cfg = config or DiagnosisConfig()
     lim = limits or PlanLimits(camera_rate=_camera_rate(prepared))
@@ -244,6 +244,7 @@ def plan_experiment(
         moves = candidate_moves(size, radius, lim)
     else:  # presses at the seen surface's patches
         moves = surface_moves(shape, radius, (layout.centres3(), layout.normals3()), lim)
+    moves = within_duration(moves, lim)
 
     # the session's camera coverage and noise
     ev0 = Evidence(prepared, session_cfg, executor, layout)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from app.cli import main
+from core.diagnosis.moves import within_duration
 from core.diagnosis.planner import PlanError, PlanLimits, candidate_moves
 from core.lab.probing import ProbeTrajectory, penetration_depth
 from core.simulation.effects import EFFECT_KINDS
@@ -83,6 +84,22 @@ def test_moves_on_a_dome_press_along_its_normals_within_the_limits():
     # a surface seen only from below cannot be pressed from above
     with pytest.raises(PlanError, match="from above"):
         surface_moves(dome, RADIUS, (np.array([[0.035, 0.035, 0.0]]), np.array([[0.0, 0.0, -1.0]])), lim)
+
+
+def test_a_move_longer_than_the_plan_is_not_offered():
+    """``--duration`` bounds the plan: a move longer than it (a slide, a side press, each
+    with its return to rest) is dropped, never cut short; none fitting is an error that
+    names the shortest move. (Seen: a 6 s plan returned a 9.4 s slide.)"""
+    moves = candidate_moves((0.0687, 0.0393, 0.0358), 0.004, PlanLimits())
+    assert {m.name for m in moves} >= {"slide-top-x", "press-+x"}
+    lim = PlanLimits(duration=8.0)
+    kept = within_duration(moves, lim)
+    assert kept and all(m.duration <= 8.0 for m in kept)
+    assert {m.name for m in moves if m.duration <= 8.0} == {m.name for m in kept}
+    assert not any(m.name.startswith("slide") for m in kept)
+    shortest = min(moves, key=lambda m: m.duration)
+    with pytest.raises(PlanError, match=f"no move fits in a 3.0 s plan: the shortest, {shortest.name}, takes"):
+        within_duration(moves, PlanLimits(duration=3.0))
 
 
 @pytest.mark.slow
