@@ -33,9 +33,9 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    :func:`core.diagnosis.nuisance.model_form_drops`), which the linear, bounded nuisance
    directions can miss.
    The significant kind with the largest drop is claimed and the others are refitted on
-   top of it (greedy forward selection). When a rival explains nearly as much with a
-   similar change and neither adds significant held-out evidence to the other, the two
-   are reported as confounded and neither is claimed.
+   top of it (greedy forward selection), unless a rival explains as much or a larger,
+   unconfirmed explanation shadows it; then the kinds are reported as confounded and
+   neither is claimed (:func:`core.diagnosis.selection.choose`).
 4. **Detectability.** For every kind, the smallest size these data would have claimed
    (its signature simulated and scaled; the session's own noise replicates): "not found
    above this size", or "cannot tell" when even a large effect would not show
@@ -71,6 +71,7 @@ from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_chec
                                        reproduction)
 from core.diagnosis.nuisance import Nuisance, model_form_drops
 from core.diagnosis.patches import field_layout
+from core.diagnosis.selection import choose
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
                                     test_error)
@@ -424,7 +425,8 @@ def diagnose_prepared(
         # inference.claim_check (its fitted change reproduces, no channel made worse, it
         # explains more than the model-form gap's plausible range)
         significant = set()
-        for k in holm(pvals, cfg.alpha):
+        rejected = set(holm(pvals, cfg.alpha))
+        for k in rejected:
             verdict = claim_check(evid[k].statistic, evid[k].critical, evid[k].reproduction, evid[k].channels,
                                   rnd.model_form(ev))
             refused.pop(k, None)
@@ -451,8 +453,6 @@ def diagnose_prepared(
         if not significant:
             reports += list(round_reports.values())
             break
-        passing = sorted(significant, key=lambda k: -evid[k].statistic)
-        best = passing[0]
 
         def change(k):
             parts = [(a.field - b.field).ravel() for a, b in zip(rnd.validation, evid[k].validation)]
@@ -460,38 +460,20 @@ def diagnose_prepared(
                 parts += [(ev.force_residual(a) - ev.force_residual(b)).ravel() for a, b in zip(rnd.validation, evid[k].validation)]
             return np.concatenate(parts)
 
-        ref = change(best)
-        rivals = []
-        for k in passing[1:]:
-            if evid[k].statistic < 0.8 * evid[best].statistic:
-                continue
-            other = change(k)
-            cos = float(ref @ other / (np.linalg.norm(ref) * np.linalg.norm(other) + 1e-30))
-            if cos > 0.9:
-                rivals.append(k)
-        if rivals:
-            # nested comparison: does either add significant held-out evidence on top of
-            # the other? The one that explains what the other cannot is kept.
-            def extra(kind: str, given: str) -> bool:
-                g = evid[given].fit
-                sub = _Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
-                e = _assess_all(ev, {kind: cands[kind]}, sub, cfg, len(active), channels_v)[kind]
-                return e.p_value <= cfg.alpha / max(len(active), 1)
+        def adds(kind: str, given: str) -> bool:
+            g = evid[given].fit
+            sub = _Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
+            e = _assess_all(ev, {kind: cands[kind]}, sub, cfg, len(active), channels_v)[kind]
+            return e.p_value <= cfg.alpha / max(len(active), 1)
 
-            survivors = [best]
-            for k in rivals:
-                best_over_k, k_over_best = extra(best, k), extra(k, best)
-                if k_over_best and not best_over_k:
-                    survivors = [k]  # the rival explains what the best cannot
-                elif not best_over_k and not k_over_best:
-                    survivors.append(k)  # neither adds to the other: confounded
-            if len(survivors) > 1:
-                # the largest residual has two explanations: claim neither, and stop, since
-                # the other candidates would be fitted against a residual it dominates
-                confounded.append(survivors)
-                reports += list(round_reports.values())
-                break
-            best = survivors[0]
+        best, group = choose(sorted(significant), [k for k in rejected if k in small],
+                             {k: evid[k].statistic for k in evid}, change, adds)
+        if best is None:
+            # the largest residual has two explanations: claim neither, and stop, since
+            # the other candidates would be fitted against a residual it dominates
+            confounded.append(group)
+            reports += list(round_reports.values())
+            break
         round_reports[best] = replace(round_reports[best], claimed=True)
         reports += list(round_reports.values())
         claimed.append((cands[best], evid[best].fit, round_reports[best]))
