@@ -71,8 +71,8 @@ from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_chec
                                        reproduction)
 from core.diagnosis.nuisance import Nuisance, model_form_drops
 from core.diagnosis.patches import field_layout
-from core.diagnosis.selection import choose
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
+from core.diagnosis.selection import choose
 from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
                                     test_error)
 from core.errors import TissueTwinError
