@@ -507,8 +507,7 @@ def diagnose_prepared(
                               iterations=max(cfg.fine_refit_iterations, 1)) if claimed else e_fit
         E_ext = e_fit.youngs_modulus
         say(0.74, "Young's modulus under other laws, Poisson's ratios and grids")
-        robot_clock = sum(float(e["offset"]) for e in ext_effects if e["kind"] == "time_offset")
-        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor, clock_offset=robot_clock,
+        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor,
                                element_size=cfg.element_size)
         ev.simulations += len(mf["variants"]) * len(ev.names["train"])
         youngs = joint_youngs(e_fit, mf)

@@ -106,12 +106,13 @@ class FieldRun:
         frame_sums: (F,) sum of point-to-mesh distances per frame, m, or None.
         frame_counts: (F,) measured points per frame.
         probe_centres: (F, 3) probe sphere centres at frame times, m, phantom frame.
-        force: (F, 3) simulated force of the probe on the phantom at frame times, N,
-            phantom frame.
+        force: (F, 3) simulated force of the probe on the phantom at the robot's samples
+            of the frame times (:class:`core.simulation.SimulationResult`), N, phantom
+            frame: it compares with the measured rows at the frame times.
         youngs_modulus: E of the replay, Pa.
         clock_offset: the replay's ``time_offset`` effect, s (0 without one): the robot's
             clock, which stamps kinematics and force alike, runs this far ahead of the
-            camera's, so the force measured at camera time t is the row at t + offset.
+            camera's.
     """
 
     sequence: str
@@ -412,26 +413,24 @@ class Evidence:
     def jacobian(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
         """(L, p) d :meth:`vector` / d theta of runs from :meth:`jacobian_runs`: the field's
         derivative weighted as the vector, then with force data the force's (a coarse run's
-        mapped onto the fine grid as :meth:`_shifted_force` maps the force) minus that of
-        the measured force read at the run's clock offset, in noise units."""
+        mapped onto the fine grid as :meth:`_shifted_force` maps the force) in noise units."""
         parts = []
         for r in runs:
             if r.jac_field is None:
                 raise TissueTwinError("jacobian() needs runs with derivatives (jacobian_runs)")
             p = r.jac_field.shape[0]
             w = np.sqrt(self.counts[r.sequence].astype(np.float64))
-            parts.append((w[None] * r.jac_field).reshape(p, -1))
+            clocked = r.d_offset is not None and np.any(r.d_offset != 0.0)
+            dfield = r.jac_field
+            if shifted and clocked and r.sequence in self.delta:
+                # the discrepancy moves with the clock (:meth:`_on_clock`)
+                dfield = dfield + r.d_offset[:, None, None] * self._on_clock(self.delta[r.sequence], r, rate=True)[None]
+            parts.append((w[None] * dfield).reshape(p, -1))
             if self.use_force:
                 df = r.jac_force
                 if shifted and r.sequence in self.force_delta:
                     df = (self.force_ratio[r.sequence] * df
                           + self.force_delta[r.sequence][None] * (r.d_youngs / self.cfg.youngs_modulus)[:, None, None])
-                if np.any(r.d_offset != 0.0):
-                    seq = self.prepared.sequences[r.sequence]
-                    h = 1e-4
-                    t = seq.frame_times + r.clock_offset
-                    rate = (seq.force_at(t + h) - seq.force_at(t - h)) / (2 * h)  # d measured / d offset, N/s
-                    df = df - r.d_offset[:, None, None] * rate[None]
                 parts.append((np.sqrt(self.sigma2) * df / self.force_sigma).reshape(p, -1))
         J = np.concatenate(parts, axis=1).T
         return J if all(r.ok for r in runs) else np.full(J.shape, np.inf)
@@ -480,10 +479,36 @@ class Evidence:
         self.force_ratio.clear()
         return self.cfg
 
+    def _on_clock(self, a: np.ndarray, r: FieldRun, rate: bool = False) -> np.ndarray:
+        """A base-model discrepancy ``a`` ((F, ...) over the sequence's frames) read at the
+        run's clock: at frame time t, its value at t + ``r.clock_offset`` (linear in time,
+        held at the ends); ``rate``: its time derivative there (per s).
+
+        The discrepancy was measured on the base model, whose probe at frame time t is at
+        the kinematics' position at t; a run with a clock offset c puts it there at t - c,
+        so its fine-minus-coarse difference at t is the base model's at t + c. Kept at the
+        base model's timing, the correction of a 0.15 s offset's replay was out of step
+        with it by 0.15 s: on a lab session with that offset the corrected misfit was
+        lowest near 0.05 s and worse at 0.15 s than at 0 (field seed 64, 12 s, force)."""
+        c = float(r.clock_offset)
+        if c == 0.0 and not rate:
+            return a
+        t = self.prepared.sequences[r.sequence].frame_times
+        q = np.clip(t + c, t[0], t[-1])
+        i = np.clip(np.searchsorted(t, q, side="right") - 1, 0, t.size - 2)
+        dt = t[i + 1] - t[i]
+        shape = (-1,) + (1,) * (a.ndim - 1)
+        if rate:
+            inside = ((t + c > t[0]) & (t + c < t[-1])).astype(np.float64)
+            return (a[i + 1] - a[i]) / dt.reshape(shape) * inside.reshape(shape)
+        w = ((q - t[i]) / dt).reshape(shape)
+        return (1.0 - w) * a[i] + w * a[i + 1]
+
     def field(self, r: FieldRun) -> np.ndarray:
-        """(F, B) residual field of a coarse run, discrepancy-corrected."""
+        """(F, B) residual field of a coarse run, discrepancy-corrected (the discrepancy
+        read at the run's clock, :meth:`_on_clock`)."""
         d = self.delta.get(r.sequence)
-        return r.field if d is None else r.field + d
+        return r.field if d is None else r.field + self._on_clock(d, r)
 
     def _shifted_force(self, r: FieldRun, shifted: bool) -> np.ndarray:
         """(F, 3) force of a run, N; a coarse run's (``shifted``) mapped onto the fine grid:
@@ -496,6 +521,7 @@ class Evidence:
         if not shifted or r.sequence not in self.force_delta:
             return r.force
         E = r.youngs_modulus / self.cfg.youngs_modulus
+        # the force is on the robot's clock whatever the run's offset: so is its discrepancy
         return self.force_ratio[r.sequence] * r.force + self.force_delta[r.sequence] * E
 
     def force_residual(self, r: FieldRun, shifted: bool = True) -> np.ndarray:
@@ -504,12 +530,9 @@ class Evidence:
         return (self._shifted_force(r, shifted) - self.measured_force(r)) / self.force_sigma
 
     def measured_force(self, r: FieldRun) -> np.ndarray:
-        """(F, 3) measured force at the run's frame times, N, read on the robot's clock as
-        the run assumes it (see ``FieldRun.clock_offset``)."""
-        if r.clock_offset == 0.0:
-            return self.force[r.sequence]
-        seq = self.prepared.sequences[r.sequence]
-        return seq.force_at(seq.frame_times + r.clock_offset)
+        """(F, 3) measured force at the run's frame times, N (the rows at the frame times
+        on the robot's clock, where every run's force is, see ``FieldRun.force``)."""
+        return self.force[r.sequence]
 
     def vector(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:
         """Weighted residual vector over the runs (inf if diverged): sqrt(n) r over bins

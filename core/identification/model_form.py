@@ -118,7 +118,7 @@ def _label(v: ModelFormVariant, sizes: dict | None, mesh: tuple[int, int, int] |
 
 def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs_modulus: float, *,
                       names: Sequence[str] | None = None, executor: Executor | None = None,
-                      variants: Sequence[ModelFormVariant] = VARIANTS, clock_offset: float = 0.0,
+                      variants: Sequence[ModelFormVariant] = VARIANTS,
                       dt: float = 1.0 / 60.0, element_size: float | None = None) -> dict:
     """E refitted to the measured force under each model-form variant.
 
@@ -126,7 +126,6 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
         prepared: the session (its ``names`` sequences need force columns).
         effects: the model's effect dicts (SESSION_FORMAT.md) at ``youngs_modulus``.
         youngs_modulus: the model's E, Pa. names: sequences (default: the train ones).
-        clock_offset: the robot clock's lead, s (the force read at t + offset).
         dt: the variants' time step, s.
         element_size: the replay's element size (m) of a phantom given by ``phantom.stl``
             (None: the mesher's default): its variants run on its own mesh at this size
@@ -161,7 +160,7 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
             if f is None or seq.force is None:
                 ok = False
                 continue
-            fm = seq.force_at(seq.frame_times + clock_offset)
+            fm = seq.force_at(seq.frame_times)  # the replay's force is on the robot's clock
             num += float(np.sum(f * fm / sigma**2))
             den += float(np.sum(f * f / sigma**2))
         fitted.append(float(youngs_modulus) * num / den if ok and den > 0 and num > 0 else None)

@@ -42,7 +42,7 @@ from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import MaxwellArm, Model, State
 from core.preparation.probe import ProbePath
 from core.simulation.solver import SimulationResult, no_rest_state, static_equilibrium
-from core.simulation.timeloop import advance_or_diverge, divergence_message, model_tuple, step_grid
+from core.simulation.timeloop import advance_or_diverge, clock_shift, divergence_message, model_tuple, step_grid
 from core.simulation.tangent import element_forces_tangent
 
 __all__ = ["Sensitivities", "ModelDerivatives", "model_derivatives", "simulate_sensitivities"]
@@ -65,6 +65,9 @@ class ModelDerivatives:
             relaxation times (s) and stiffness ratios per unit. k_lhs: (p,) of the system
             matrix's stiffness coefficient (s^2). centres: (p, K + 1, 3) of the probe
             centre at every step (m per unit). radius: (p,) of the probe radius.
+            clock: (p,) of the step grid's clock shift (s per unit): a clock offset moves
+            the grid with the probe (:func:`core.simulation.timeloop.step_grid`), so its
+            centres stay and the output times move against the steps.
     """
 
     mu: np.ndarray
@@ -78,6 +81,7 @@ class ModelDerivatives:
     k_lhs: np.ndarray
     centres: np.ndarray
     radius: np.ndarray
+    clock: np.ndarray
 
     def kernel_tuple(self) -> tuple:
         """``dmdl`` of :func:`core.simulation.stepper.advance`."""
@@ -133,7 +137,9 @@ def model_derivatives(build: Builder, theta, scales, path: ProbePath, probe_radi
     p = theta.size
     base = model or build(theta, False)
     N, E, T = base.mesh.n_nodes, base.mesh.n_tets, len(base.terms)
-    out = {k: [] for k in ("mu", "lam", "kc", "body", "support", "friction", "tau", "k", "k_lhs", "centres", "radius")}
+    out = {k: [] for k in ("mu", "lam", "kc", "body", "support", "friction", "tau", "k", "k_lhs", "centres", "radius",
+                           "clock")}
+    shift0 = clock_shift(base)
     for j in range(p):
         h = REL_STEP * (scales[j] if scales[j] > 0 else max(abs(theta[j]), 1.0))
         pair = []
@@ -146,8 +152,9 @@ def model_derivatives(build: Builder, theta, scales, path: ProbePath, probe_radi
             pth, r = path, float(probe_radius)
             for effect in m.effects:
                 pth, r = effect.transform_probe(pth, r)
-            pair.append((m, pth.at(step_t), r))
-        (mp, cp, rp), (mm, cm, rm) = pair
+            shift = clock_shift(m)  # the steps of m's own grid
+            pair.append((m, pth.at(step_t + (shift - shift0)), r, shift))
+        (mp, cp, rp, sp_), (mm, cm, rm, sm) = pair
         d = 2.0 * h
         out["mu"].append((mp.mu - mm.mu) / d)
         out["lam"].append((mp.lam - mm.lam) / d)
@@ -160,6 +167,7 @@ def model_derivatives(build: Builder, theta, scales, path: ProbePath, probe_radi
         out["k_lhs"].append((_k_lhs(mp) - _k_lhs(mm)) / d)
         out["centres"].append((cp - cm) / d)
         out["radius"].append((rp - rm) / d)
+        out["clock"].append((sp_ - sm) / d)
 
     def stack(key, shape):
         return np.ascontiguousarray(np.array(out[key], dtype=np.float64).reshape((p,) + shape))
@@ -168,7 +176,7 @@ def model_derivatives(build: Builder, theta, scales, path: ProbePath, probe_radi
         mu=stack("mu", (E,)), lam=stack("lam", (E,)), contact_stiffness=stack("kc", ()),
         body_force=stack("body", (N, 3)), support_stiffness=stack("support", (N,)), friction=stack("friction", ()),
         tau=stack("tau", (T,)), k=stack("k", (T,)), k_lhs=stack("k_lhs", ()),
-        centres=stack("centres", (step_t.size, 3)), radius=stack("radius", ()))
+        centres=stack("centres", (step_t.size, 3)), radius=stack("radius", ()), clock=stack("clock", ()))
 
 
 def _equilibrium_tangent(model: Model, state: State, dm: ModelDerivatives, *, tol: float = 1e-10,
@@ -267,7 +275,8 @@ def simulate_sensitivities(build: Builder, theta, path: ProbePath, probe_radius:
             dx, dq = _equilibrium_tangent(model, state, dm)
         except SimulationError as exc:  # no rest state (e.g. gravity on a far too soft phantom), as simulate()
             result = no_rest_state(grid, N, exc, time.perf_counter() - t_wall)
-            return Sensitivities(result, names, np.full((p, F, N, 3), np.nan), np.full((p, F, 3), np.nan))
+            F_frames = grid.frame_times.size
+            return Sensitivities(result, names, np.full((p, F_frames, N, 3), np.nan), np.full((p, F_frames, 3), np.nan))
     else:
         state = model.initial_state()
         dx, dq = np.zeros((p, N, 3)), np.zeros((p, 4, E))
@@ -286,19 +295,25 @@ def simulate_sensitivities(build: Builder, theta, path: ProbePath, probe_radius:
         j += 1
     limit = model.config.divergence_limit * float(np.linalg.norm(model.mesh.size))
     fac = model._factor
+    # a camera frame's time moves against the grid as the clock shift does; a robot
+    # sample moves with it (:func:`core.simulation.timeloop.step_grid`)
+    dphase = np.zeros((p, F))
+    dphase[:, grid.camera] = -dm.clock[:, None]  # (the robot's samples are other indices then)
     code, k, j, disp, rows = advance_or_diverge(
         model_tuple(model), lapack_pbtrs(), fac.cbT, fac._rows, fac._slot, fac._used, centres, float(radius),
         x, v, q, eps_v, times, step_t, k_of, 0, False, j, F, out_x, out_f, x.copy(), np.zeros(3), limit, np.zeros(3),
-        dm.kernel_tuple(), dm.centres, dx, dv, dq, deps, dout_x, dout_f, dx.copy(), np.zeros((p, 3)), np.zeros((p, 3)),
+        dm.kernel_tuple(), dm.centres, dphase, dx, dv, dq, deps, dout_x, dout_f, dx.copy(), np.zeros((p, 3)), np.zeros((p, 3)),
         k=0, j=j)
     fac._rows = rows
     status, message = "ok", ""
     if code in (stepper.STATUS_NONFINITE, stepper.STATUS_TOO_FAR):
         status, message = "diverged", divergence_message(step_t[k], k, disp)
-    result = SimulationResult(times=times, positions=out_x, contact_force=out_f, probe_centres=tpath.at(times),
-                              probe_radius=float(radius), status=status, message=message,
-                              steps=k if n_steps else 0, wall_time=time.perf_counter() - t_wall)
-    return Sensitivities(result=result, names=names, positions=dout_x, contact_force=dout_f)
+    positions, force = grid.frames(out_x, out_f)
+    result = SimulationResult(times=grid.frame_times, positions=positions, contact_force=force,
+                              probe_centres=tpath.at(grid.frame_times), probe_radius=float(radius), status=status,
+                              message=message, steps=k if n_steps else 0, wall_time=time.perf_counter() - t_wall)
+    dpositions, dforce = grid.frames(dout_x, dout_f)
+    return Sensitivities(result=result, names=names, positions=dpositions, contact_force=dforce)
 
 
 def finite_difference(build: Builder, theta, path: ProbePath, probe_radius: float, output_times, j: int,

@@ -58,7 +58,11 @@ class SimulationResult:
         times: (F,) output times, s.
         positions: (F, N, 3) float64 node positions at ``times``, m, phantom frame
             (NaN after a divergence).
-        contact_force: (F, 3) N, force applied by the probe on the phantom, phantom frame.
+        contact_force: (F, 3) N, force applied by the probe on the phantom, phantom frame,
+            at the robot's sample of each output time (the robot's clock stamps the
+            kinematics and the force alike: with a clock offset c, the replay's time
+            t + c; without one, ``times``), so that it compares with the measured force
+            rows at ``times`` whatever the offset.
         probe_centres: (F, 3) m, the (effect-transformed) probe centres used.
         probe_radius: m, the radius used.
         status: "ok" or "diverged".
@@ -302,10 +306,10 @@ def _step_explicit(model: Model, state: State, centre, radius, vp):
 def no_rest_state(grid: StepGrid, n_nodes: int, exc: Exception, wall_time: float) -> SimulationResult:
     """The diverged result of a replay whose model has no rest state under its body
     forces (:func:`static_equilibrium` raised ``exc``): NaN positions (F, n_nodes, 3) and
-    forces (F, 3) at ``grid.times``, no steps."""
-    F = grid.times.size
-    return SimulationResult(times=grid.times, positions=np.full((F, n_nodes, 3), np.nan),
-                            contact_force=np.full((F, 3), np.nan), probe_centres=grid.path.at(grid.times),
+    forces (F, 3) at ``grid.frame_times``, no steps."""
+    F = grid.frame_times.size
+    return SimulationResult(times=grid.frame_times, positions=np.full((F, n_nodes, 3), np.nan),
+                            contact_force=np.full((F, 3), np.nan), probe_centres=grid.path.at(grid.frame_times),
                             probe_radius=float(grid.probe_radius), status="diverged",
                             message=f"no rest state under the body forces: {exc}", steps=0, wall_time=wall_time)
 
@@ -379,9 +383,10 @@ def simulate(
 
     The model's input-side effects (probe radius, clock offset, kinematic offset)
     are applied to the path first. The run starts from rest (or from the sagged
-    equilibrium when the model has body forces) at ``min(path.t[0], output_times[0])``
-    and steps with ``model.config.dt``; positions at output times are interpolated
-    linearly between the bracketing steps.
+    equilibrium when the model has body forces) at ``min(path.t[0], output_times[0])``,
+    moved with a clock offset (:func:`core.simulation.timeloop.step_grid`), and steps
+    with ``model.config.dt``; positions at output times (and the force at their robot
+    samples) are interpolated linearly between the bracketing steps.
 
     Args:
         model: the static model.
@@ -434,7 +439,7 @@ def simulate(
         out_x[j] = x
         if frame_hook is not None:
             shifted = st.x.copy()
-            apply_hook(frame_hook, model, j, times, out_x, shifted)
+            apply_hook(frame_hook, model, j, grid, out_x, shifted)
             st.x = shifted
 
     while j < times.size and k_of[j] == 0:
@@ -442,18 +447,18 @@ def simulate(
         out_f[j] = 0.0
         j += 1
     if compilable(model):
-        _, k, status, message = run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f,
-                                                  probe_radius, limit, frame_hook, callback)
+        _, k, status, message = run_compiled(model, state, grid, j, out_x, out_f, limit, frame_hook, callback)
         n_steps_taken = k
     else:
         k, status, message = _simulate_reference(model, state, centres, step_t, times, k_of, j, out_x, out_f,
                                                 probe_radius, limit, record, callback)
         n_steps_taken = k
+    positions, contact_force = grid.frames(out_x, out_f)
     return SimulationResult(
-        times=times,
-        positions=out_x,
-        contact_force=out_f,
-        probe_centres=path.at(times),
+        times=grid.frame_times,
+        positions=positions,
+        contact_force=contact_force,
+        probe_centres=path.at(grid.frame_times),
         probe_radius=float(probe_radius),
         status=status,
         message=message,

@@ -442,7 +442,7 @@ def _step(mdl, pbtrs, cbT, rows, slot, used, centre, radius, vp, x, v, q, eps_v,
 @njit(cache=True)
 def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
             times, step_t, k_of, k_begin, resume, j_begin, j_stop, out_x, out_f, prev_x, prev_f, limit, force,
-            dmdl, dcentres, dx, dv, dq, deps, dout_x, dout_f, dprev_x, dprev_f, dforce):
+            dmdl, dcentres, dphase, dx, dv, dq, deps, dout_x, dout_f, dprev_x, dprev_f, dforce):
     """Step from step ``k_begin`` (already taken when ``resume``: its pending frames are
     recorded first) until every step is taken or frame ``j_stop - 1`` is recorded.
 
@@ -458,8 +458,11 @@ def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
 
     Tangents (p directions, p may be 0): the model's derivatives ``dmdl = (dmu, dlam,
     dkc, db, dS, dmuf, dtau, dk, dk_lhs, drho)``, the probe centres' ``dcentres`` (p, K + 1,
-    3), the state's ``dx, dv, dq, deps`` (in place), recorded into ``dout_x`` (p, F, N, 3)
-    and ``dout_f`` (p, F, 3) as the forward values.
+    3), each output time's ``dphase`` (p, F) against the step grid, s per unit (a clock
+    offset moves the grid: a camera frame's weight between its steps changes by
+    ``dphase / dt``, a robot sample moves with the grid), the state's
+    ``dx, dv, dq, deps`` (in place), recorded into ``dout_x`` (p, F, N, 3) and ``dout_f``
+    (p, F, 3) as the forward values.
 
     Returns:
         (status, last step taken, next frame to record, largest displacement from rest
@@ -479,8 +482,9 @@ def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
             out_f[j] = (1 - a) * prev_f + a * force
             out_x[j] = (1 - a) * prev_x + a * x
             for t in range(p):
-                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t]
-                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t]
+                da = dphase[t, j] / dt
+                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t] + da * (force - prev_f)
+                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t] + da * (x - prev_x)
             j += 1
             if j >= j_stop:
                 prev_x[:] = x
@@ -524,8 +528,9 @@ def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
             out_f[j] = (1 - a) * prev_f + a * force
             out_x[j] = (1 - a) * prev_x + a * x
             for t in range(p):
-                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t]
-                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t]
+                da = dphase[t, j] / dt
+                dout_f[t, j] = (1 - a) * dprev_f[t] + a * dforce[t] + da * (force - prev_f)
+                dout_x[t, j] = (1 - a) * dprev_x[t] + a * dx[t] + da * (x - prev_x)
             j += 1
             if j >= j_stop:
                 return STATUS_STOPPED, k, j, disp, rows

@@ -26,11 +26,17 @@ class StepGrid:
     """The time grid of a replay (see :func:`step_grid`).
 
     Attributes:
-        times: (F,) output times, s. path: the probe path after the model's input-side
-            effects. probe_radius: m, after them. t0: start time, s. step_t: (K + 1,)
-            step times from t0, s. centres: (K + 1, 3) probe centres at the step times, m,
-            phantom frame. k_of: (F,) int64, the step whose end follows each output time
-            (output j lies in ``(step_t[k-1], step_t[k]]``).
+        times: (M,) the times the replay records, s, increasing: the F camera frames and,
+            with a clock shift, the F robot samples beside them (M = 2F). path: the probe
+            path after the model's input-side effects. probe_radius: m, after them. t0:
+            start time, s. step_t: (K + 1,) step times from t0, s. centres: (K + 1, 3)
+            probe centres at the step times, m, phantom frame. k_of: (M,) int64, the step
+            whose end follows each recorded time (output j lies in
+            ``(step_t[k-1], step_t[k]]``). camera: (F,) int64, the recorded index of each
+            camera frame (positions are read there). robot: (F,) int64, the recorded
+            index of each frame's robot sample (the probe force is read there).
+            frame_times: (F,) the camera frames' times, s. frame_of: (M,) int64, the
+            camera frame a recorded time is, -1 for a robot sample alone.
     """
 
     times: np.ndarray
@@ -40,16 +46,46 @@ class StepGrid:
     step_t: np.ndarray
     centres: np.ndarray
     k_of: np.ndarray
+    camera: np.ndarray
+    robot: np.ndarray
+    frame_times: np.ndarray
+    frame_of: np.ndarray
 
     def __iter__(self):
         return iter((self.times, self.path, self.probe_radius, self.t0, self.step_t, self.centres, self.k_of))
 
+    def frames(self, out_x: np.ndarray, out_f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(positions at the camera frames (..., F, N, 3), force at the robot samples
+        (..., F, 3)) of recorded ``out_x`` (..., M, N, 3) and ``out_f`` (..., M, 3)."""
+        return out_x[..., self.camera, :, :], out_f[..., self.robot, :]
+
+
+def clock_shift(model: Model) -> float:
+    """The sum of the model's effects' clock shifts, s (:meth:`core.simulation.effects.Effect.clock_shift`)."""
+    return float(sum(e.clock_shift() for e in model.effects))
+
 
 def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) -> StepGrid:
     """The steps of a replay of ``path`` with ``model``: the start is the earlier of the
-    recorded path's first time and the first output time (before the input-side effects,
-    so that a clock offset moves the probe, not the grid), then steps of ``config.dt``
-    up to the last output time.
+    recorded path's first time and the first output time, moved with the probe by the
+    input-side effects' clock shift (:meth:`core.simulation.effects.Effect.clock_shift`),
+    then steps of ``config.dt`` up to the last output time.
+
+    The grid moves with a clock offset so that the steps meet the probe path at the same
+    points whatever the offset: the replay with an offset c is then the replay without
+    one read at the output times plus c (frames before the start hold the rest state).
+    With a fixed grid the step's phase against the probe's path changed with c, and on a
+    lab session (12 s, a stiff contact) the force misfit moved by ~1500 chi-square units
+    per sequence between offsets 50 ms apart, a rough surface on which the offset's fit
+    stopped short of a real 0.15 s (field seed 64).
+
+    The probe force is measured by the robot and stamped with its clock, as are the
+    kinematics, so it is recorded at the robot's sample of each frame time t: at the
+    replay's time t + shift (M = 2F recorded times when the shift is not 0). It does not
+    change with the clock offset then, as the measured force does not; read at the
+    camera's times, the comparison's samples slid along the model-form gap with the
+    offset, and the force misfit moved by ~1000-2000 chi-square units per 25 ms on the
+    lab session above without any offset information in it.
 
     Raises:
         SimulationError: empty, non-finite or decreasing output times, or a probe radius
@@ -58,16 +94,29 @@ def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) 
     times = np.asarray(output_times, dtype=np.float64).reshape(-1)
     if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
         raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
-    t0 = float(min(path.t[0], times[0]))
+    t0 = float(min(path.t[0], times[0])) + clock_shift(model)
     for effect in model.effects:
         path, probe_radius = effect.transform_probe(path, probe_radius)
     if not (probe_radius > 0):
         raise SimulationError(f"probe radius must be positive, got {probe_radius}")
+    shift = clock_shift(model)
+    F = times.size
+    if not any(e.moves_clock for e in model.effects):
+        recorded, camera, robot = times, np.arange(F), np.arange(F)
+    else:
+        both = np.concatenate([times, times + shift])
+        order = np.argsort(both, kind="stable")
+        where = np.empty(2 * F, dtype=np.int64)
+        where[order] = np.arange(2 * F)
+        recorded, camera, robot = both[order], where[:F], where[F:]
     dt = model.config.dt
-    n_steps = max(int(math.ceil((times[-1] - t0) / dt - 1e-9)), 0)
+    n_steps = max(int(math.ceil((recorded[-1] - t0) / dt - 1e-9)), 0)
     step_t = t0 + dt * np.arange(n_steps + 1)
-    k_of = np.clip(np.searchsorted(step_t, times, side="left"), 0, n_steps)
-    return StepGrid(times, path, float(probe_radius), t0, step_t, path.at(step_t), k_of)
+    k_of = np.clip(np.searchsorted(step_t, recorded, side="left"), 0, n_steps)
+    frame_of = np.full(recorded.size, -1, dtype=np.int64)
+    frame_of[camera] = np.arange(F)
+    return StepGrid(recorded, path, float(probe_radius), t0, step_t, path.at(step_t), k_of, camera, robot, times,
+                    frame_of)
 
 
 NUMERICAL_ERRORS = (ZeroDivisionError, FloatingPointError, np.linalg.LinAlgError)
@@ -104,12 +153,11 @@ def compilable(model: Model) -> bool:
             and all(type(t) is MaxwellArm for t in model.terms))
 
 
-def run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, probe_radius, limit,
-                       frame_hook, callback):
+def run_compiled(model, state, grid: StepGrid, j, out_x, out_f, limit, frame_hook, callback):
     """The time loop of :func:`core.simulation.solver.simulate` in
-    :func:`core.simulation.stepper.advance`, from ``state`` and output frame ``j``:
-    fills ``out_x`` (F, N, 3) and ``out_f`` (F, 3) in place; ``frame_hook`` and
-    ``callback`` as in ``simulate``.
+    :func:`core.simulation.stepper.advance`, from ``state`` and recorded time ``j`` of
+    ``grid`` (:class:`StepGrid`): fills ``out_x`` (M, N, 3) and ``out_f`` (M, 3) in
+    place; ``frame_hook`` and ``callback`` as in ``simulate``.
 
     Returns:
         (final state, last step, status ``"ok"`` or ``"diverged"``, message).
@@ -117,6 +165,7 @@ def run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, pr
     from core.simulation import stepper
 
     fac = model._factor
+    times, _, probe_radius, _, step_t, centres, k_of = grid
     n_steps = step_t.size - 1
     x = np.ascontiguousarray(state.x, dtype=np.float64).copy()
     v = np.ascontiguousarray(state.v, dtype=np.float64).copy()
@@ -142,7 +191,7 @@ def run_compiled(model, state, centres, step_t, times, k_of, j, out_x, out_f, pr
             break
         if code == stepper.STATUS_STOPPED:
             if frame_hook is not None:
-                apply_hook(frame_hook, model, j - 1, times, out_x, x)
+                apply_hook(frame_hook, model, j - 1, grid, out_x, x)
             if callback is not None:
                 callback(k / max(n_steps, 1), f"step {k}/{n_steps}")
             resume = True
@@ -179,16 +228,20 @@ def no_tangents(model: Model, n_centres: int, n_frames: int) -> tuple:
     z = np.zeros(0)
     dmdl = (np.zeros((0, E)), np.zeros((0, E)), z, np.zeros((0, N, 3)), np.zeros((0, N)), z, np.zeros((0, T)),
             np.zeros((0, T)), z, z)
-    return (dmdl, np.zeros((0, n_centres, 3)), np.zeros((0, N, 3)), np.zeros((0, N, 3)), np.zeros((0, 4, E)),
+    return (dmdl, np.zeros((0, n_centres, 3)), np.zeros((0, n_frames)), np.zeros((0, N, 3)), np.zeros((0, N, 3)), np.zeros((0, 4, E)),
             np.zeros((0, T, 9, E)), np.zeros((0, n_frames, N, 3)), np.zeros((0, n_frames, 3)), np.zeros((0, N, 3)),
             np.zeros((0, 3)), np.zeros((0, 3)))
 
 
-def apply_hook(frame_hook, model, j, times, out_x, x) -> None:
-    """The in-loop correction of frame ``j`` (see :func:`core.simulation.solver.simulate`): ``out_x[j]`` and the
-    state's free nodes ``x`` (in place) shifted by the hook's change."""
+def apply_hook(frame_hook, model, j, grid: StepGrid, out_x, x) -> None:
+    """The in-loop correction of recorded time ``j`` (see :func:`core.simulation.solver.simulate`):
+    ``out_x[j]`` and the state's free nodes ``x`` (in place) shifted by the hook's change; nothing
+    for a robot sample that is no camera frame (the hook sees camera frames and their index)."""
+    frame = int(grid.frame_of[j])
+    if frame < 0:
+        return
     cur = out_x[j]
-    new = frame_hook(j, float(times[j]), cur.copy())
+    new = frame_hook(frame, float(grid.frame_times[frame]), cur.copy())
     if new is None:
         return
     new = np.asarray(new, dtype=np.float64)

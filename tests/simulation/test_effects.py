@@ -171,6 +171,26 @@ def test_input_side_effects_change_only_the_probe():
     assert sink(bigger) > sink(base) > 0
 
 
+@pytest.mark.parametrize("offset", [0.137, -0.061])
+def test_a_clock_offset_replays_the_same_steps_read_later(offset):
+    """With a clock offset c the step grid moves with the probe, so the replay is the one
+    without the offset read at the output times plus c (frames before the start at rest):
+    smooth in c, which the offset's fit needs. The force, stamped by the robot's clock as
+    the kinematics are, is the replay's at the robot's sample of each output time: the
+    same as without the offset."""
+    mesh = box_mesh(SIZE, GRID)
+    path = _poke(SIZE[:2] / 2)
+    times = np.arange(0.0, 1.5, 1.0 / 15.0) + 0.01
+    model = lambda effects: build_model(mesh, MASS, Material(5000.0), effects=effects)
+    later = simulate(model([]), path, 0.005, np.clip(times + offset, 0.0, None))
+    base = simulate(model([]), path, 0.005, times)
+    shifted = simulate(model([TimeOffset(offset)]), path, 0.005, times)
+    assert base.ok and shifted.ok and np.abs(base.contact_force).max() > 0.05
+    assert np.abs(later.positions - base.positions).max() > 1e-4  # the offset matters to the camera
+    np.testing.assert_allclose(shifted.positions, later.positions, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(shifted.contact_force, base.contact_force, rtol=0, atol=1e-9)
+
+
 def test_effects_round_trip_through_their_dicts():
     for e in [Gravity(), Inclusion(), Viscoelasticity(), Friction(), BaseCompliance(), ProbeRadius(), TimeOffset(), KinematicOffset()]:
         assert effect_from_dict(e.to_dict()) == e

@@ -157,6 +157,14 @@ class Effect:
         """Map the calibrated probe input to the true one (default: unchanged)."""
         return path, radius
 
+    moves_clock: ClassVar[bool] = False
+    """Whether the effect moves the probe input along time (:meth:`clock_shift`)."""
+
+    def clock_shift(self) -> float:
+        """How far (s) the effect moves the probe input along time: the replay's step
+        grid moves with it (:func:`core.simulation.timeloop.step_grid`), default 0."""
+        return 0.0
+
     def to_dict(self) -> dict:
         """``{"kind": ..., **parameters}`` as in truth.json / diagnosis.json (lists, not arrays)."""
         out = {"kind": self.kind}

@@ -90,6 +90,11 @@ class TimeOffset(Effect):
     def transform_probe(self, path, radius):
         return path.shifted(-self.offset), radius
 
+    moves_clock: ClassVar[bool] = True
+
+    def clock_shift(self):
+        return -self.offset
+
     def size(self, ctx):
         return abs(float(self.offset))
 
@@ -112,6 +117,13 @@ class TimeOffset(Effect):
         # a look-elsewhere factor of 1 (fresh seed 6: -22 and -24 ms) and of 8 (no-effect
         # seed 908: -24 ms; seed 32 with a hidden inclusion: +24 ms); this grid claims
         # nothing on all four sessions (measured). A false claim costs more than that miss.
+        # The roughness had two causes in the replay, both gone (2026-11-27): the step grid
+        # stood still while the offset moved the probe along it, and the force was read at
+        # the camera's times, so its samples slid along the model-form gap with the offset
+        # (the robot's clock stamps the force as it does the kinematics: no offset moves it
+        # now, :func:`core.simulation.timeloop.step_grid`). On field seed 64 (12 s, force,
+        # a 0.15 s offset) the train drop then rises smoothly to a plateau at 0.10-0.15 s
+        # (2064 at 50 ms, 3385 at 100 ms, 3466 at 150 ms, 2062 at 200 ms).
         return FitSpace("time_offset", ("offset",), ("s",), _a(0.03), _a(-1.0), _a(1.0),
                         tuple(_a(v) for v in TIME_OFFSET_STARTS),
                         lambda x: {"kind": "time_offset", "offset": float(x[0])}, lambda x: {"offset": float(x[0])},
