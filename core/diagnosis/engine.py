@@ -448,7 +448,8 @@ def diagnose_prepared(
                 delta_chi2_force=e.by_channel[1], p_value=e.p_value, critical=e.critical,
                 score=float(e.statistic / e.critical) if e.critical > 0 and math.isfinite(e.critical) else None,
                 significant=k in significant, channels=e.channels,
-                reproduction=e.reproduction)
+                reproduction=e.reproduction,
+                model_form_bar=rnd.model_form(ev)[1] if rnd._model_form is not None else None)
         lap(f"round {rnd_i}")
         if not significant:
             reports += list(round_reports.values())

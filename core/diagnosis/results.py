@@ -50,6 +50,10 @@ class CauseReport:
             whether it was significantly worse (``inference.channel_worsening``).
         reproduction: the held-out drop ("observed") against the drop the fitted change
             itself would make ("expected"), chi2 (``inference.reproduction``).
+        model_form_bar: the largest held-out drop of the round's model at the ends of its
+            model-form range, chi2 (a claim had to exceed it; diagnosis.json's
+            ``model_form`` is the last round's), or None when the round needed none (no
+            kind passed Holm's procedure).
     """
 
     kind: str
@@ -73,6 +77,7 @@ class CauseReport:
     significant: bool = False
     channels: dict = field(default_factory=dict)
     reproduction: dict = field(default_factory=dict)
+    model_form_bar: float | None = None
 
 
 @dataclass(frozen=True)
@@ -186,7 +191,7 @@ class Diagnosis:
             "candidates": [
                 {"kind": c.kind, "round": c.round, "delta_chi2": c.delta_chi2, "delta_chi2_field": c.delta_chi2_field,
                  "delta_chi2_force": c.delta_chi2_force, "p_value": c.p_value, "critical": _num(c.critical),
-                 "score": _num(c.score), "significant": c.significant, "channels": c.channels, "reproduction": c.reproduction, "explained": c.explained,
+                 "score": _num(c.score), "significant": c.significant, "channels": c.channels, "reproduction": c.reproduction, "model_form_bar": c.model_form_bar, "explained": c.explained,
                  "confidence": c.confidence, "claimed": c.claimed, "parameters": c.parameters,
                  "fit_variables": c.fit_variables}
                 for c in self.candidates

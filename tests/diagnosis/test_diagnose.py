@@ -109,6 +109,9 @@ def test_min_size_of_gravity_agrees_with_simulation(no_effect, tmp_path_factory)
         if claimed:
             assert kinds == ["gravity"], (factor, kinds)
             assert d.causes[0].parameters["g"][2] == pytest.approx(g[2], rel=0.35)
+            # the bar the claim passed is recorded with it (its round's, not the last round's)
+            cause = next(c for c in d.to_json()["candidates"] if c["kind"] == "gravity" and c["round"] == 0)
+            assert cause["model_form_bar"] is not None and cause["delta_chi2"] > cause["model_form_bar"] >= 0.0
         else:
             assert kinds == [], (factor, kinds)
 
