@@ -97,7 +97,9 @@ class Sensitivities:
         result: the replay (:class:`core.simulation.solver.SimulationResult`).
         names: the parameters' names.
         positions: (p, F, N, 3) float64 d positions / d parameter, m per unit, phantom frame.
-        contact_force: (p, F, 3) float64 d force / d parameter, N per unit.
+        contact_force: (p, F, 3) float64 d force / d parameter, N per unit, at the robot's
+            samples of the output times, as ``result.contact_force`` (a clock offset moves
+            neither).
     """
 
     result: SimulationResult
