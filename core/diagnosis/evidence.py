@@ -488,8 +488,10 @@ class Evidence:
         the kinematics' position at t; a run with a clock offset c puts it there at t - c,
         so its fine-minus-coarse difference at t is the base model's at t + c. Kept at the
         base model's timing, the correction of a 0.15 s offset's replay was out of step
-        with it by 0.15 s: on a lab session with that offset the corrected misfit was
-        lowest near 0.05 s and worse at 0.15 s than at 0 (field seed 64, 12 s, force)."""
+        with it by 0.15 s: on a lab session with that offset (field seed 64, 12 s, force)
+        the corrected field's train misfit dropped most near 75 ms and was worse at 0.15 s
+        than at 0 (drop -1392); read at the run's clock, it drops 4990 at 0.15 s, most
+        (5177) at 0.10 s."""
         c = float(r.clock_offset)
         if c == 0.0 and not rate:
             return a

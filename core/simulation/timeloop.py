@@ -56,7 +56,10 @@ class StepGrid:
 
     def frames(self, out_x: np.ndarray, out_f: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(positions at the camera frames (..., F, N, 3), force at the robot samples
-        (..., F, 3)) of recorded ``out_x`` (..., M, N, 3) and ``out_f`` (..., M, 3)."""
+        (..., F, 3)) of recorded ``out_x`` (..., M, N, 3) and ``out_f`` (..., M, 3); the
+        arrays themselves when every recorded time is a camera frame (no copy)."""
+        if self.times.size == self.frame_times.size:
+            return out_x, out_f
         return out_x[..., self.camera, :, :], out_f[..., self.robot, :]
 
 
@@ -74,18 +77,18 @@ def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) 
     The grid moves with a clock offset so that the steps meet the probe path at the same
     points whatever the offset: the replay with an offset c is then the replay without
     one read at the output times plus c (frames before the start hold the rest state).
-    With a fixed grid the step's phase against the probe's path changed with c, and on a
-    lab session (12 s, a stiff contact) the force misfit moved by ~1500 chi-square units
-    per sequence between offsets 50 ms apart, a rough surface on which the offset's fit
-    stopped short of a real 0.15 s (field seed 64).
+    With a fixed grid the step's phase against the probe's path changed with c: on a lab
+    session (field seed 64, 12 s, force, a 0.15 s offset) moving the grid alone changed
+    the force misfit of both train sequences at offsets between steps by 1400-2500
+    chi-square units (25 ms: a drop of -421 became 978; 75 ms: -1663 became -4136).
 
     The probe force is measured by the robot and stamped with its clock, as are the
     kinematics, so it is recorded at the robot's sample of each frame time t: at the
-    replay's time t + shift (M = 2F recorded times when the shift is not 0). It does not
-    change with the clock offset then, as the measured force does not; read at the
-    camera's times, the comparison's samples slid along the model-form gap with the
-    offset, and the force misfit moved by ~1000-2000 chi-square units per 25 ms on the
-    lab session above without any offset information in it.
+    replay's time t + shift (M = 2F recorded times for a model with a clock-moving
+    effect). It does not change with the clock offset then, as the measured force does
+    not; read at the camera's times, the comparison's samples slid along the model-form
+    gap with the offset, and on the session above the force misfit moved by 1400-2700
+    chi-square units between offsets 25 ms apart, without any offset information in it.
 
     Raises:
         SimulationError: empty, non-finite or decreasing output times, or a probe radius
@@ -94,12 +97,12 @@ def step_grid(model: Model, path: ProbePath, probe_radius: float, output_times) 
     times = np.asarray(output_times, dtype=np.float64).reshape(-1)
     if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
         raise SimulationError("output_times must be a non-empty, finite, non-decreasing array")
-    t0 = float(min(path.t[0], times[0])) + clock_shift(model)
+    shift = clock_shift(model)
+    t0 = float(min(path.t[0], times[0])) + shift
     for effect in model.effects:
         path, probe_radius = effect.transform_probe(path, probe_radius)
     if not (probe_radius > 0):
         raise SimulationError(f"probe radius must be positive, got {probe_radius}")
-    shift = clock_shift(model)
     F = times.size
     if not any(e.moves_clock for e in model.effects):
         recorded, camera, robot = times, np.arange(F), np.arange(F)
