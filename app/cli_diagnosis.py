@@ -20,7 +20,7 @@ def cmd_diagnose(args) -> int:
             diag = _diagnose_with_network(args, config, ex, cb)
         else:
             diag = diagnose(args.session, config, executor=ex, callback=cb)
-    from core.diagnosis.summary import gravity_at_reported_youngs
+    from core.diagnosis.youngs import gravity_at_reported_youngs
 
     out = write_diagnosis(diag, args.out)
     console = Console()

@@ -137,7 +137,7 @@ def cause_geometry(effect: dict, size, youngs: dict | None = None) -> dict | Non
         ``"probe_vector"`` (``vector``, m, at the probe, drawn 5x: a robot offset) or
         ``"probe_sphere"`` (``radius``: the probe's true radius); with a ``label``.
     """
-    from core.diagnosis.summary import gravity_at_reported_youngs
+    from core.diagnosis.youngs import gravity_at_reported_youngs
 
     kind = effect["kind"]
     sx, sy, sz = (float(v) for v in size)

@@ -73,13 +73,10 @@ from core.diagnosis.nuisance import Nuisance, model_form_drops
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.selection import choose
-from core.diagnosis.summary import (fit_fields, gain_interval, joint_youngs, palpation, summary,
-                                    test_error)
+from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
+from core.diagnosis.youngs import youngs_of_extended
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
-from core.identification.fit import fit_youngs_modulus
-from core.identification.model_form import youngs_model_form
-from core.identification.trials import Trial
 from core.simulation.effects import EFFECT_KINDS, FitSpace
 from core.preparation import PreparedSession
 from core.preparation.segments import informative_session
@@ -502,32 +499,9 @@ def diagnose_prepared(
     ext_effects = [e for _, f, _ in claimed for e in f.effects]
     lap("refits")
 
-    E_ext = E_cur
-    if joint:
-        e_fit = fit_candidate(ev, None, ext_effects, E=E_cur, fit_youngs=True, fine=bool(cfg.fine_grid),
-                              iterations=max(cfg.fine_refit_iterations, 1)) if claimed else e_fit
-        E_ext = e_fit.youngs_modulus
-        say(0.74, "Young's modulus under other laws, Poisson's ratios and grids")
-        mf = youngs_model_form(prepared, ext_effects, E_ext, executor=executor,
-                               element_size=cfg.element_size)
-        ev.simulations += len(mf["variants"]) * len(ev.names["train"])
-        youngs = joint_youngs(e_fit, mf)
-    else:
-        say(0.75, "fitting Young's modulus with the claimed causes")
-        fit_effects = [({"kind": "gravity", "g": list(9.81 * np.asarray(e["g"]) / max(np.linalg.norm(e["g"]), 1e-12))}
-                        if e["kind"] == "gravity" else e) for e in ext_effects]
-        youngs = {"value": None, "interval": None, "identifiable": False, "reason": "not fitted"}
-        if cfg.fit_youngs:
-            fit = fit_youngs_modulus(
-                prepared, base=Trial(sequence="", youngs_modulus=1.0, poisson_ratio=cfg.poisson_ratio, grid=cfg.grid, law=cfg.law,
-                                     effects=tuple(fit_effects)),
-                executor=executor, refine_mesh=cfg.refine_mesh, n_boot=cfg.n_boot, seed=cfg.seed)
-            ev.simulations += fit.evaluations
-            youngs = fit.to_json()["youngs_modulus"]
-            if fit.identifiable:
-                E_ext = fit.coarse_value
-                ext_effects = fit_effects
-    youngs["replay_grid_value_used"] = E_ext
+    # E with the claimed causes, under the model-form variants (core.diagnosis.youngs)
+    youngs, E_ext, ext_effects = youngs_of_extended(prepared, ev, cfg, executor, joint=joint, claimed=bool(claimed),
+                                                    effects=ext_effects, youngs_modulus=E_cur, e_fit=e_fit, say=say)
     lap("youngs")
 
     det = None

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from core.diagnosis.engine import Diagnosis
-from core.diagnosis.summary import gravity_at_reported_youngs
+from core.diagnosis.youngs import gravity_at_reported_youngs
 
 __all__ = ["write_diagnosis"]
 

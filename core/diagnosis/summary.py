@@ -12,11 +12,9 @@ from core.diagnosis.candidates import press_spans
 from core.diagnosis.evidence import Evidence, FieldRun
 from core.diagnosis.fields import NOISE_GROUPS, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
-from core.identification.verdict import MAX_RATIO
 from core.simulation.effects import FitSpace
 from core.preparation import PreparedSession
-__all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "joint_youngs", "palpation",
-           "gravity_at_reported_youngs"]
+__all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "palpation"]
 
 
 def fit_fields(cand: FitSpace, fit: Fit) -> dict:
@@ -116,67 +114,6 @@ def summary(eng: Evidence, runs: list[FieldRun], sigma2: float, prepared: Prepar
         "mean_map_m": (mean_map / np.maximum(cnt_map, 1))[: eng.layout.top_bins].reshape(eng.layout.bins).tolist(),
         "systematic_rms_map_m": np.sqrt(np.maximum(sq_map / np.maximum(cnt_map, 1), 0.0))[: eng.layout.top_bins].reshape(eng.layout.bins).tolist(),
     }
-
-
-def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
-    """The youngs_modulus entry of diagnosis.json from a joint fit (log10 E last): the
-    value, and a 95 % interval that holds the Levenberg-Marquardt covariance's and the
-    model-form range (``model_form`` of
-    :func:`core.identification.model_form.youngs_model_form`: E refitted under other
-    laws, Poisson's ratios and grids, each widened by the statistical interval);
-    identifiable by the fit's rule (:mod:`core.identification.verdict`): force data set a
-    scale, and the interval spans at most :data:`~core.identification.verdict.MAX_RATIO`
-    (3x). ``value`` stays the estimate either way (SESSION_FORMAT: it may be null)."""
-    lg, se = float(fit.x[-1]), float(fit.se[-1])
-    if not np.isfinite(se):
-        return {"value": fit.youngs_modulus, "interval": None, "identifiable": False,
-                "method": "fitted jointly with the claimed causes to the force and the residual field",
-                "reason": "the joint fit's Jacobian is singular"}
-    stat = [10.0 ** (lg - 1.96 * se), 10.0 ** (lg + 1.96 * se)]
-    lo, hi = stat
-    out = {"value": fit.youngs_modulus, "statistical_interval": stat,
-           "method": "fitted jointly with the claimed causes to the force and the residual field"}
-    if model_form and model_form.get("low") is not None:
-        f = 10.0 ** (1.96 * se)
-        lo, hi = min(lo, model_form["low"] / f), max(hi, model_form["high"] * f)
-        out["model_form"] = model_form
-        # the reported value: the middle of the model-form range on a log scale (no variant
-        # preferred, the largest factor off any of them the smallest); the replay's E beside it
-        out["model_value"] = fit.youngs_modulus
-        out["value"] = float(np.sqrt(model_form["low"] * model_form["high"]))
-    # the fit's rule (core.identification.verdict): force sets a scale (structural), and the
-    # 95 % interval spans at most MAX_RATIO; here the interval also holds the model form
-    ratio = hi / lo
-    ok = bool(ratio <= MAX_RATIO)
-    holds = ("statistical and model form: the law, Poisson's ratio and grid variants" if model_form
-             else "statistical")
-    interval = f"the 95 % interval {lo:.3g}-{hi:.3g} Pa ({holds}) spans a factor {ratio:.2f}"
-    out.update({"interval": [lo, hi], "identifiable": ok,
-                "reason": (f"force data set the scale of E; {interval}" if ok else
-                           f"force data set a scale, but {interval} (> {MAX_RATIO:g}): the data and the model form "
-                           "cannot pin E down"),
-                "statistic": {"rule": "core.identification.verdict (the fit's): structural and interval",
-                              "structural": True, "interval": [lo, hi], "ratio": ratio, "max_ratio": MAX_RATIO}})
-    return out
-
-
-def gravity_at_reported_youngs(g, youngs: dict | None) -> float | None:
-    """|g| (m/s^2) of a gravity fitted on the replay grid, read at the reported E.
-
-    The sag is set by rho g / E, so a gravity fitted at the replay grid's E (stiffened by
-    volumetric locking on 13x5x5) reads, at the reported mesh-corrected E, as
-    ``|g| x value / replay_grid_value_used``.
-
-    Args:
-        g: (3,) the fitted gravity, m/s^2. youngs: diagnosis.json's ``youngs_modulus``.
-
-    Returns:
-        that |g|, or None when the two E are missing or equal within 1 %.
-    """
-    E, E_grid = (youngs or {}).get("value"), (youngs or {}).get("replay_grid_value_used")
-    if not E or not E_grid or abs(E / E_grid - 1.0) <= 0.01:
-        return None
-    return float(np.linalg.norm(np.asarray(g, dtype=np.float64)) * E / E_grid)
 
 
 def palpation(prepared: PreparedSession, names: Sequence[str]) -> dict:

@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from core.diagnosis.summary import joint_youngs
+from core.diagnosis.youngs import joint_youngs
 from core.identification.verdict import MAX_RATIO
 
 
@@ -39,7 +39,7 @@ def test_a_wide_statistical_interval_alone_is_not_identifiable():
 
 
 def test_gravity_read_at_the_reported_youngs_modulus():
-    from core.diagnosis.summary import gravity_at_reported_youngs
+    from core.diagnosis.youngs import gravity_at_reported_youngs
 
     youngs = {"value": 4803.0, "replay_grid_value_used": 8541.0}
     assert gravity_at_reported_youngs([-1.23, 1.46, -16.6], youngs) == pytest.approx(
