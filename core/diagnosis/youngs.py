@@ -32,10 +32,9 @@ def joint_youngs(fit: Fit, model_form: dict | None = None) -> dict:
     model-form range (``model_form`` of
     :func:`core.identification.model_form.youngs_model_form`: E refitted under other
     laws, Poisson's ratios and grids, each widened by the statistical interval);
-    identifiable by the fit's rule
-    (:mod:`core.identification.verdict`): force data set a scale, and the interval spans
-    at most :data:`~core.identification.verdict.MAX_RATIO` (3x). ``value`` stays the
-    estimate either way (SESSION_FORMAT: it may be null)."""
+    identifiable by the fit's rule (:mod:`core.identification.verdict`): force data set a
+    scale, and the interval spans at most :data:`~core.identification.verdict.MAX_RATIO`
+    (3x). ``value`` stays the estimate either way (SESSION_FORMAT: it may be null)."""
     lg, se = float(fit.x[-1]), float(fit.se[-1])
     if not np.isfinite(se):
         return {"value": fit.youngs_modulus, "interval": None, "identifiable": False,
@@ -95,11 +94,12 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
 
     With force data (``joint``), E is refitted with the claimed ``effects`` on the fine grid
     (when a cause was ``claimed``; else ``e_fit``, the last round's fit, stands), under the
-    model-form variants.
-    Without force data :func:`core.identification.fit_youngs_modulus` fits E with the
-    claimed effects (a gravity at its physical 9.81 m/s^2, since the fit measures g / E).
+    model-form variants. Without force data :func:`core.identification.fit_youngs_modulus`
+    fits E with the claimed effects (a gravity at its physical 9.81 m/s^2, since the fit
+    measures g / E).
 
     Args:
+        executor: the diagnosis's :class:`~core.identification.execution.Executor`.
         effects: the claimed causes' effect dicts (fitted on the fine grid).
         youngs_modulus: the model's current E (Pa, coarse grid).
 
