@@ -73,11 +73,11 @@ def simulate_reference(model: Model, path: ProbePath, radius: float, times: np.n
         f = el.nodal_forces(fem.pk1_corotational(F9, R, model.mu, model.lam)).ravel()
         f -= cfg.rayleigh_stiffness * (K0 @ v.ravel())
         rhs = dt * (f - cfg.rayleigh_mass * m3 * v.ravel())
-        contacts = find_contacts_reference(xp, model.mesh.surface_triangles, centres[k], radius)
+        contacts = find_contacts_reference(xp, model.mesh.surface_triangles, centres[k], radius,
+                                           cfg.contact_subdivision)
         A = A0
         if len(contacts):
             kc = model.contact_stiffness * contacts.area
-            rows, cols, vals = [], [], []
             hvec = np.zeros((len(contacts), 3 * N))
             for c in range(len(contacts)):
                 for a in range(3):

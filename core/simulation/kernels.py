@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 __all__ = ["quat_to_matrix", "polar_update", "pk1_stress", "element_forces", "scatter_forces",
-           "sphere_triangle_candidates", "sphere_contacts", "constraint_matrix"]
+           "sphere_triangle_candidates", "subdivision_corners", "sphere_contacts", "constraint_matrix"]
 
 
 @njit(cache=True, _nrt=False)
@@ -301,45 +301,108 @@ def _closest_on_triangle(p, a, b, c, w):
     w[0], w[1], w[2] = 1.0 - v - ww, v, ww
 
 
-@njit(cache=True)
-def sphere_contacts(x, triangles, centre, radius):
-    """Penetrated triangles: (indices (k,), weights (k,3), normals (k,3), depth (k,), area (k,)).
+def subdivision_corners(n: int) -> np.ndarray:
+    """Barycentric corners of the n x n uniform subdivision of a triangle.
 
-    Same geometry as :func:`core.simulation.contact.find_contacts` (the numpy reference).
+    Each triangle (a, b, c) splits into n^2 congruent sub-triangles of area 1/n^2 of its
+    own, oriented as the triangle (the grid ``a + i/n (b - a) + j/n (c - a)``,
+    ``i + j <= n``: n(n+1)/2 upright and n(n-1)/2 inverted ones).
+
+    Args:
+        n: subdivisions per edge, >= 1 (1: the triangle itself).
+
+    Returns:
+        (n^2, 3, 3) float64: ``[s, corner, parent vertex]`` barycentric weights, so that the
+        sub-triangle's corner is ``sum_j S[s, corner, j] * (a, b, c)[j]``.
+
+    Raises:
+        ValueError: n < 1.
+    """
+    n = int(n)
+    if n < 1:
+        raise ValueError(f"contact subdivision must be >= 1, got {n}")
+
+    def bary(i, j):
+        return (1.0 - (i + j) / n, i / n, j / n)
+
+    out = []
+    for i in range(n):
+        for j in range(n - i):
+            out.append((bary(i, j), bary(i + 1, j), bary(i, j + 1)))
+            if i + j <= n - 2:
+                out.append((bary(i + 1, j), bary(i + 1, j + 1), bary(i, j + 1)))
+    return np.ascontiguousarray(out, dtype=np.float64)
+
+
+@njit(cache=True)
+def sphere_contacts(x, triangles, sub, centre, radius):
+    """Penetrated sub-triangles of the surface: (parent triangle indices (k,), sub-triangle
+    indices (k,), parent barycentric weights (k, 3), normals (k, 3), depth (k,), areas (k,),
+    sub-triangle barycentric weights (k, 3)).
+
+    Each surface triangle is split by ``sub`` (:func:`subdivision_corners`) into sub-triangles
+    mapped barycentrically on its nodes (a finer collision surface on the coarse FEM
+    surface); every sub-triangle whose closest point lies inside the sphere is one penalty
+    contact of the sub-triangle's area. Same geometry as
+    :func:`core.simulation.contact.find_contacts_reference` (the numpy reference).
     """
     cand = sphere_triangle_candidates(x, triangles, centre, radius)
-    k = cand.shape[0]
+    ns = sub.shape[0]
+    k = cand.shape[0] * ns
     idx = np.empty(k, dtype=np.int64)
+    sid = np.empty(k, dtype=np.int64)
     W = np.empty((k, 3))
+    WS = np.empty((k, 3))
     N = np.empty((k, 3))
     D = np.empty(k)
     A = np.empty(k)
     w = np.empty(3)
+    sa = np.empty(3)
+    sb = np.empty(3)
+    sc = np.empty(3)
     m = 0
     for t in cand:
         a = x[triangles[t, 0]]
         b = x[triangles[t, 1]]
         c = x[triangles[t, 2]]
-        _closest_on_triangle(centre, a, b, c, w)
-        q = w[0] * a + w[1] * b + w[2] * c
-        d = q - centre
-        dist = np.sqrt(d @ d)
-        if dist >= radius:
-            continue
         fn = np.cross(b - a, c - a)
         area2 = np.sqrt(fn @ fn)
         fn = fn / area2
-        if (centre - q) @ fn < 0.0:  # centre behind the face plane: push inwards
-            N[m] = -fn
-            D[m] = radius + dist
-        else:
-            N[m] = d / max(dist, 1e-12)
-            D[m] = radius - dist
-        idx[m] = t
-        W[m] = w
-        A[m] = 0.5 * area2
-        m += 1
-    return idx[:m], W[:m], N[:m], D[:m], A[:m]
+        for s in range(ns):
+            for d in range(3):
+                sa[d] = sub[s, 0, 0] * a[d] + sub[s, 0, 1] * b[d] + sub[s, 0, 2] * c[d]
+                sb[d] = sub[s, 1, 0] * a[d] + sub[s, 1, 1] * b[d] + sub[s, 1, 2] * c[d]
+                sc[d] = sub[s, 2, 0] * a[d] + sub[s, 2, 1] * b[d] + sub[s, 2, 2] * c[d]
+            if ns > 1:  # cheap rejection: the sub-triangle's bounding sphere misses the probe
+                r2 = 0.0
+                d2 = 0.0
+                for d in range(3):
+                    mc = (sa[d] + sb[d] + sc[d]) / 3.0
+                    r2 = max(r2, (sa[d] - mc) ** 2 + (sb[d] - mc) ** 2 + (sc[d] - mc) ** 2)
+                    d2 += (mc - centre[d]) ** 2
+                reach = radius + np.sqrt(3.0 * r2)
+                if d2 >= reach * reach:
+                    continue
+            _closest_on_triangle(centre, sa, sb, sc, w)
+            q = w[0] * sa + w[1] * sb + w[2] * sc
+            dv = q - centre
+            dist = np.sqrt(dv @ dv)
+            if dist >= radius:
+                continue
+            if (centre - q) @ fn < 0.0:  # centre behind the face plane: push inwards
+                N[m] = -fn
+                D[m] = radius + dist
+            else:
+                N[m] = dv / max(dist, 1e-12)
+                D[m] = radius - dist
+            idx[m] = t
+            sid[m] = s
+            WS[m] = w
+            for j in range(3):
+                W[m, j] = w[0] * sub[s, 0, j] + w[1] * sub[s, 1, j] + w[2] * sub[s, 2, j]
+            A[m] = 0.5 * area2 / ns
+            m += 1
+    return idx[:m], sid[:m], W[:m], N[:m], D[:m], A[:m], WS[:m]
 
 
 @njit(cache=True)

@@ -191,7 +191,8 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
         if it == 0:
             # candidates: every triangle within a margin of the sphere, so that a triangle
             # the step pushes into the sphere is handled in this step, not the next
-            candidates = find_contacts(xp.reshape(-1, 3), tris, centre, radius + cfg.contact_margin)
+            candidates = find_contacts(xp.reshape(-1, 3), tris, centre, radius + cfg.contact_margin,
+                                           cfg.contact_subdivision)
             active = _gap(candidates, xp.reshape(-1, 3), centre, radius) > 0
         # active set of the linearised contact problem (a QP in the contact forces):
         # a constraint that would pull is released, a candidate the step pushes inside is
@@ -242,7 +243,8 @@ def step(model: Model, state: State, centre: np.ndarray, radius: float, probe_ve
 def _subset(c: Contacts, keep: np.ndarray) -> Contacts:
     if np.all(keep):
         return c
-    return Contacts(c.triangles[keep], c.nodes[keep], c.weights[keep], c.normals[keep], c.depth[keep], c.area[keep])
+    return Contacts(c.triangles[keep], c.nodes[keep], c.weights[keep], c.normals[keep], c.depth[keep], c.area[keep],
+                    None if c.sub is None else c.sub[keep], None if c.sub_weights is None else c.sub_weights[keep])
 
 
 def _gap(c: Contacts, x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
@@ -287,7 +289,7 @@ def _step_explicit(model: Model, state: State, centre, radius, vp):
     v = state.v.ravel()
     m3 = np.repeat(model.node_mass, 3)
     damp = cfg.rayleigh_mass * m3 * v + cfg.rayleigh_stiffness * (model.K @ v)
-    contacts = find_contacts(state.x, model.mesh.surface_triangles, centre, radius)
+    contacts = find_contacts(state.x, model.mesh.surface_triangles, centre, radius, cfg.contact_subdivision)
     fc = np.zeros_like(state.x)
     force = np.zeros(3)
     if len(contacts):

@@ -191,7 +191,7 @@ def _step(mdl, pbtrs, cbT, rows, slot, used, centre, radius, vp, x, v, q, eps_v,
     Returns ``(rows, number of active contacts)``."""
     (tets, grad_n, volume, mu, lam, law, stiffening, polar_iterations, term_tau, term_k, dt, alpha, beta,
      newton_iterations, mass3, free_dofs, free_index, scratch, body_force, support, X, tris, kc, margin,
-     contact_iterations, tolerance, friction, slip_speed, k_lhs) = mdl
+     contact_iterations, tolerance, friction, slip_speed, k_lhs, sub) = mdl
     dmu, dlam, dkc, db, dS, dmuf, dtau, dk, dk_lhs, drho = dmdl
     p = dx.shape[0]
     N = x.shape[0]
@@ -258,7 +258,7 @@ def _step(mdl, pbtrs, cbT, rows, slot, used, centre, radius, vp, x, v, q, eps_v,
             m = mass3[dof]
             r[j] = dt * (f[i, d] - alpha * m * vg[i, d]) - m * (vg[i, d] - v0[i, d])
         if it == 0:
-            cidx, cW, cN, _, cA = sphere_contacts(xp, tris, centre, radius + margin)
+            cidx, csub, cW, cN, _, cA, cWs = sphere_contacts(xp, tris, sub, centre, radius + margin)
             cnodes = np.empty((cidx.size, 3), dtype=np.int64)
             for c in range(cidx.size):
                 for j in range(3):
@@ -271,7 +271,7 @@ def _step(mdl, pbtrs, cbT, rows, slot, used, centre, radius, vp, x, v, q, eps_v,
                 dW = np.empty((p, cidx.size, 3))
                 dN = np.empty((p, cidx.size, 3))
                 dA = np.empty((p, cidx.size))
-                contact_geometry_tangent(xp, dx + dt * dvg, centre, dc, cnodes, cW, cN, dW, dN, dA)
+                contact_geometry_tangent(xp, dx + dt * dvg, centre, dc, cnodes, sub, csub, cWs, cN, dW, dN, dA)
                 tfr_c = np.empty(2 * cidx.size, dtype=np.int64)
                 tfr_dir = np.empty((2 * cidx.size, 3))
                 dfr_om = np.empty((p, 2 * cidx.size))
@@ -449,7 +449,7 @@ def advance(mdl, pbtrs, cbT, rows, slot, used, centres, radius, x, v, q, eps_v,
     ``mdl``: the model as a tuple ``(tets, grad_n, volume, mu, lam, law, stiffening,
     polar_iterations, term_tau, term_k, dt, alpha, beta, newton_iterations, mass3,
     free_dofs, free_index, scratch, body_force, support, X, tris, kc, margin,
-    contact_iterations, tolerance, friction, slip_speed, k_lhs)`` (see
+    contact_iterations, tolerance, friction, slip_speed, k_lhs, sub)`` (see
     :class:`core.simulation.model.Model`); ``centres`` (K + 1, 3) the probe centre at every
     step. Frames ``j`` with ``k_of[j] == k`` are interpolated between the states before and
     after step ``k`` into ``out_x`` (F, N, 3) and ``out_f`` (F, 3); ``prev_x``/``prev_f``

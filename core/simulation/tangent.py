@@ -449,27 +449,33 @@ def stiffness_apply(u, tets, grad_n, volume, mus, lams, out):
 
 
 @njit(cache=True)
-def contact_geometry_tangent(x, dx, centre, dcentre, cnodes, cW, cN, dW, dN, dA):
-    """Derivatives of the candidate contacts' barycentric weights ``dW`` (p, k, 3), normals
-    ``dN`` (p, k, 3) and areas ``dA`` (p, k) (outputs) along ``dx`` (p, N, 3) and the
-    probe centre's ``dcentre`` (p, 3), for the contacts found by
-    :func:`core.simulation.kernels.sphere_contacts` at ``x`` (weights ``cW``, normals ``cN``).
+def contact_geometry_tangent(x, dx, centre, dcentre, cnodes, sub, csub, cWs, cN, dW, dN, dA):
+    """Derivatives of the candidate contacts' barycentric weights ``dW`` (p, k, 3) (on the
+    parent triangle's nodes), normals ``dN`` (p, k, 3) and areas ``dA`` (p, k) (outputs) along
+    ``dx`` (p, N, 3) and the probe centre's ``dcentre`` (p, 3), for the contacts found by
+    :func:`core.simulation.kernels.sphere_contacts` at ``x`` (sub-triangles ``csub`` of the
+    subdivision ``sub``, weights in the sub-triangle ``cWs``, normals ``cN``).
 
-    The closest point's region (a vertex: one weight non-zero; an edge: two; the face:
-    three) and whether the centre lies behind the face plane are those of the forward
-    step. Normal: the unit vector from the centre to the closest point, or the inward face
-    normal behind the plane (Ericson 2004, Sec. 5.1.5)."""
+    The closest point's region in its sub-triangle (a vertex: one weight non-zero; an edge:
+    two; the face: three) and whether the centre lies behind the face plane are those of the
+    forward step. Normal: the unit vector from the centre to the closest point, or the
+    inward face normal behind the plane (Ericson 2004, Sec. 5.1.5). A sub-triangle's corners
+    are fixed barycentric combinations of its triangle's nodes, so their derivatives are the
+    same combinations of the nodes' derivatives."""
     p = dx.shape[0]
     k = cnodes.shape[0]
     for c in range(k):
         ia, ib, ic = cnodes[c, 0], cnodes[c, 1], cnodes[c, 2]
-        a, b, cc = x[ia], x[ib], x[ic]
+        S = sub[csub[c]]
+        a = S[0, 0] * x[ia] + S[0, 1] * x[ib] + S[0, 2] * x[ic]
+        b = S[1, 0] * x[ia] + S[1, 1] * x[ib] + S[1, 2] * x[ic]
+        cc = S[2, 0] * x[ia] + S[2, 1] * x[ib] + S[2, 2] * x[ic]
         e1 = b - a
         e2 = cc - a
         cr = np.cross(e1, e2)
         area2 = math.sqrt(cr @ cr)
         fn = cr / area2
-        w = cW[c]
+        w = cWs[c]
         q = w[0] * a + w[1] * b + w[2] * cc
         d = q - centre
         dist = math.sqrt(d @ d)
@@ -480,9 +486,9 @@ def contact_geometry_tangent(x, dx, centre, dcentre, cnodes, cW, cN, dW, dN, dA)
                 nz += 1
         pts = (a, b, cc)
         for t in range(p):
-            da = dx[t, ia]
-            db = dx[t, ib]
-            dcc = dx[t, ic]
+            da = S[0, 0] * dx[t, ia] + S[0, 1] * dx[t, ib] + S[0, 2] * dx[t, ic]
+            db = S[1, 0] * dx[t, ia] + S[1, 1] * dx[t, ib] + S[1, 2] * dx[t, ic]
+            dcc = S[2, 0] * dx[t, ia] + S[2, 1] * dx[t, ib] + S[2, 2] * dx[t, ic]
             dpts = (da, db, dcc)
             de1 = db - da
             de2 = dcc - da
@@ -520,7 +526,7 @@ def contact_geometry_tangent(x, dx, centre, dcentre, cnodes, cW, cN, dW, dN, dA)
                 dw[1] = dvv
                 dw[2] = dww
             for j in range(3):
-                dW[t, c, j] = dw[j]
+                dW[t, c, j] = dw[0] * S[0, j] + dw[1] * S[1, j] + dw[2] * S[2, j]
             if behind:
                 for j in range(3):
                     dN[t, c, j] = -dfn[j]

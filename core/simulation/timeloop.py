@@ -14,6 +14,7 @@ import numpy as np
 
 from core.errors import SimulationError
 from core.preparation.probe import ProbePath
+from core.simulation.contact import contact_corners
 from core.simulation.lowrank import lapack_pbtrs
 from core.simulation.model import Model, State
 
@@ -222,7 +223,7 @@ def model_tuple(model: Model) -> tuple:
             np.ascontiguousarray(model.support_stiffness, dtype=np.float64), model.mesh.nodes,
             model.mesh.surface_triangles, float(model.contact_stiffness), float(cfg.contact_margin),
             int(cfg.contact_iterations), float(cfg.contact_tolerance), float(model.friction),
-            float(cfg.friction_slip_speed), float(k_lhs))
+            float(cfg.friction_slip_speed), float(k_lhs), contact_corners(cfg.contact_subdivision))
 
 
 def no_tangents(model: Model, n_centres: int, n_frames: int) -> tuple:

@@ -6,7 +6,7 @@ from scipy.spatial.transform import Rotation
 
 from core.simulation import Material, build_model, box_mesh, static_equilibrium
 from core.simulation import fem, kernels
-from core.simulation.contact import find_contacts, find_contacts_reference
+from core.simulation.contact import contact_corners, find_contacts, find_contacts_reference
 
 SIZE = np.array([0.0687, 0.0393, 0.0358])
 
@@ -214,22 +214,45 @@ def test_column_converges_under_refinement_despite_volumetric_locking():
     assert (ratios[1] - ratios[2]) < (ratios[0] - ratios[1])
 
 
-def test_compiled_contact_matches_numpy_reference():
+@pytest.mark.parametrize("subdivision", [1, 3])
+def test_compiled_contact_matches_numpy_reference(subdivision):
     mesh = box_mesh(SIZE, (13, 5, 5))
     rng = np.random.default_rng(4)
     x = mesh.nodes + 0.0005 * rng.standard_normal(mesh.nodes.shape)
     hits = 0
     for _ in range(30):
         centre = np.array([rng.uniform(0, SIZE[0]), rng.uniform(0, SIZE[1]), SIZE[2] + rng.uniform(-0.004, 0.006)])
-        a = find_contacts(x, mesh.surface_triangles, centre, 0.005)
-        b = find_contacts_reference(x, mesh.surface_triangles, centre, 0.005)
-        order_a, order_b = np.argsort(a.triangles), np.argsort(b.triangles)
+        a = find_contacts(x, mesh.surface_triangles, centre, 0.005, subdivision)
+        b = find_contacts_reference(x, mesh.surface_triangles, centre, 0.005, subdivision)
+        order_a = np.lexsort((a.sub, a.triangles))
+        order_b = np.lexsort((b.sub, b.triangles))
         assert np.array_equal(a.triangles[order_a], b.triangles[order_b])
+        assert np.array_equal(a.sub[order_a], b.sub[order_b])
         assert np.allclose(a.weights[order_a], b.weights[order_b])
         assert np.allclose(a.normals[order_a], b.normals[order_b])
         assert np.allclose(a.depth[order_a], b.depth[order_b])
+        assert np.allclose(a.area[order_a], b.area[order_b])
+        # the contact point is the sub-triangle's point mapped on the triangle's nodes
+        p_parent = np.einsum("kj,kjd->kd", a.weights, x[a.nodes])
+        corners = np.einsum("kij,kjd->kid", contact_corners(subdivision)[a.sub], x[a.nodes])
+        assert np.allclose(p_parent, np.einsum("ki,kid->kd", a.sub_weights, corners))
         hits += len(a)
     assert hits > 0
+
+
+def test_subdivided_contact_surface_tiles_each_triangle():
+    """The n x n sub-triangles cover the triangle exactly: equal areas summing to it, the
+    same orientation, corners on the triangle."""
+    for n in (1, 2, 3, 5):
+        S = contact_corners(n)
+        assert S.shape == (n * n, 3, 3)
+        assert np.allclose(S.sum(2), 1.0) and S.min() >= 0.0
+        uv = S[:, :, 1:]  # (u, v) coordinates of the corners
+        e1, e2 = uv[:, 1] - uv[:, 0], uv[:, 2] - uv[:, 0]
+        signed = 0.5 * (e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+        assert np.allclose(signed, 0.5 / (n * n))  # same orientation, equal areas, sum 1/2
+    with pytest.raises(ValueError):
+        contact_corners(0)
 
 
 def test_stiffness_damping_in_the_kernel_equals_beta_K_v():

@@ -60,6 +60,13 @@ CASES = {
                     "corotational", {}),
     "kinematic_offset": (lambda th: ([{"kind": "kinematic_offset", "offset": [th[0], th[1], th[2]]}], 5000.0, 0.44),
                          [0.0005, -0.0002, -0.0003], [0.0005, 0.0005, 0.0005], "corotational", {}),
+    # the contact surface subdivided 3 x 3 per triangle (SimulationConfig.contact_subdivision)
+    "probe_radius_subdivided_contact": (lambda th: ([{"kind": "probe_radius", "radius": th[0]}], 5000.0, 0.44),
+                                        [0.006], [0.0005], "corotational", {"contact_subdivision": 3}),
+    "kinematic_offset_subdivided_contact": (
+        lambda th: ([{"kind": "kinematic_offset", "offset": [th[0], th[1], th[2]]}], 10 ** th[3], 0.44),
+        [0.0005, -0.0002, -0.0003, np.log10(5000.0)], [0.0005, 0.0005, 0.0005, 0.02], "corotational",
+        {"contact_subdivision": 3}),
     "neo_hookean_two_corrections": (lambda th: ([{"kind": "friction", "mu": 0.4}], 10 ** th[0], th[1]),
                                     [np.log10(5000.0), 0.44], [0.02, 0.01], "stable_neo_hookean",
                                     {"newton_iterations": 2}),
