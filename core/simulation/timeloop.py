@@ -139,7 +139,15 @@ def advance_or_diverge(*args, k: int, j: int):
     try:
         return stepper.advance(*args)
     except NUMERICAL_ERRORS:
-        return stepper.STATUS_NONFINITE, k, j, float("nan"), args[3]
+        # the factor's cache of inverse rows may have grown inside the call (a new buffer,
+        # lost with the exception) while its slots and count were updated in place: empty
+        # it, or the next run on this (shared, cached) factor reads rows that are not there
+        # (measured: a dome's diagnosis failed on "cannot assign slice of shape (87, 1677)
+        # from input of shape (0, 1677)" after a model-form variant diverged this way)
+        rows, slot, used = args[3], args[4], args[5]
+        slot[:] = -1
+        used[0] = 0
+        return stepper.STATUS_NONFINITE, k, j, float("nan"), rows
 
 
 def divergence_message(t: float, k: int, disp: float) -> str:

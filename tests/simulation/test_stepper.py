@@ -127,3 +127,44 @@ def test_a_numerical_error_inside_the_compiled_step_is_a_divergence(monkeypatch,
     sens = simulate_sensitivities(build, np.array([5000.0]), path, 0.005, frames)
     assert sens.result.status == "diverged" and "non-finite" in sens.result.message
     assert np.isnan(sens.result.positions[-1]).all()
+
+
+def test_a_numerical_error_leaves_the_shared_factor_usable(monkeypatch):
+    """A step that raises after its factor's cache of inverse rows grew into a new buffer
+    (slots and count updated in place, the buffer lost with the exception) must not leave
+    that cached, shared factor inconsistent: measured, a dome's diagnosis then failed on the
+    next run that needed new rows ("cannot assign slice of shape (87, 1677) from input of
+    shape (0, 1677)")."""
+    from core.simulation import stepper
+    from core.simulation.lowrank import ensure_rows
+
+    mesh = box_mesh(SIZE, (7, 4, 4))
+    frames = np.arange(0.0, 1.0, 1.0 / 30.0)
+
+    def press(x, y):
+        return ProbePath(np.array([0.0, 1.0]), np.array([[x, y, 0.05], [x, y, 0.03]]))
+
+    model = build_model(mesh, 0.104, Material(5000.0, 0.44), SimulationConfig())
+    assert simulate(model, press(0.03, 0.02), 0.005, frames).ok
+    real = stepper.advance
+
+    def failing(*args):
+        pbtrs, cbT, rows, slot, used = args[1:6]
+        # rows of nodes far from both presses: more than the buffer holds
+        far = np.flatnonzero(mesh.nodes[:, 0] > 0.05)
+        dofs = model.free_index[(3 * far[:, None] + np.arange(3)).ravel()]
+        dofs = dofs[(dofs >= 0) & (slot[np.maximum(dofs, 0)] < 0)].astype(np.int64)
+        grown = ensure_rows(pbtrs, cbT, rows, slot, used, dofs)
+        assert grown.shape[0] > rows.shape[0]  # a new buffer, as a contact on new nodes makes
+        raise ZeroDivisionError("division by zero")
+
+    monkeypatch.setattr(stepper, "advance", failing)
+    assert simulate(model, press(0.03, 0.02), 0.005, frames).status == "diverged"
+    monkeypatch.setattr(stepper, "advance", real)
+    # the same model (so the same cached factor) pressing elsewhere needs new rows
+    again = simulate(model, press(0.012, 0.012), 0.005, frames)
+    fresh = simulate(build_model(mesh, 0.104, Material(5000.0, 0.44), SimulationConfig(compiled=False)),
+                     press(0.012, 0.012), 0.005, frames)  # the Python reference step
+    assert again.ok and np.max(np.abs(again.contact_force)) > 0.05
+    np.testing.assert_allclose(again.positions, fresh.positions, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(again.contact_force, fresh.contact_force, rtol=0, atol=1e-6)
