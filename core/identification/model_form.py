@@ -33,7 +33,7 @@ from core.identification.execution import Executor, SerialExecutor
 from core.preparation import PreparedSession
 from core.simulation import SimulationConfig
 
-__all__ = ["ModelFormVariant", "VARIANTS", "youngs_model_form", "variant_element_sizes"]
+__all__ = ["ModelFormVariant", "VARIANTS", "REFERENCE", "youngs_model_form", "force_youngs", "variant_element_sizes"]
 
 
 @dataclass(frozen=True)
@@ -138,32 +138,16 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
         diverged gets None and is left out).
     """
     executor = executor or SerialExecutor()
-    names = list(names) if names is not None else [n for n, s in prepared.sequences.items() if s.role == "train"]
-    rest = [prepared.sequences[m].force_at(prepared.sequences[m].frame_times)[prepared.rest_frames(m)] for m in names
-            if prepared.sequences[m].force is not None]
-    rest = np.concatenate(rest) if rest else np.zeros((0, 3))
-    sigma = np.maximum(np.sqrt(np.mean(rest**2, axis=0)), 1e-3) if rest.shape[0] >= 10 else np.ones(3)
+    names = _force_names(prepared, names)
+    sigma = _force_sigma(prepared, names)
     fine_ref = ModelFormVariant(FINE, REFERENCE.law, REFERENCE.poisson_ratio)
     runs = [REFERENCE, fine_ref, *variants]
     sizes = variant_element_sizes(prepared, element_size)
     items = [(n, tuple(effects), float(youngs_modulus), v, dt, None if sizes is None else sizes[v.grid])
              for v in runs for n in names]
     forces = executor.map(_run, prepared, items)
-    fitted, k = [], 0
-    for v in runs:
-        num = den = 0.0
-        ok = True
-        for n in names:
-            f = forces[k]
-            k += 1
-            seq = prepared.sequences[n]
-            if f is None or seq.force is None:
-                ok = False
-                continue
-            fm = seq.force_at(seq.frame_times)  # the replay's force is on the robot's clock
-            num += float(np.sum(f * fm / sigma**2))
-            den += float(np.sum(f * f / sigma**2))
-        fitted.append(float(youngs_modulus) * num / den if ok and den > 0 and num > 0 else None)
+    fitted = [_least_squares_youngs(prepared, names, forces[i * len(names):(i + 1) * len(names)], youngs_modulus, sigma)
+              for i in range(len(runs))]
     ref, ref_fine = fitted[0], fitted[1]
     ratio = ref_fine / ref if ref and ref_fine else None
     out = [{"model": _label(REFERENCE, sizes), "youngs_modulus": ref},
@@ -176,3 +160,65 @@ def youngs_model_form(prepared: PreparedSession, effects: Sequence[dict], youngs
     vals = [o["youngs_modulus"] for o in out if o["youngs_modulus"] is not None]
     return {"variants": out, "low": min(vals) if vals else None, "high": max(vals) if vals else None,
             "fine_over_coarse": ratio}
+
+
+def force_youngs(prepared: PreparedSession, models: Sequence[Sequence[dict]], youngs_modulus: float, *,
+                 names: Sequence[str] | None = None, executor: Executor | None = None,
+                 variant: ModelFormVariant = REFERENCE, dt: float = 1.0 / 60.0,
+                 element_size: float | None = None) -> list[float | None]:
+    """E refitted to the measured force for each of several models under one variant, by the
+    least squares of :func:`youngs_model_form` (one replay per model and sequence: the
+    force scales with E, the causes that set a scale of their own understood as scaled with it).
+
+    Smooth in the models' parameters wherever their force is, which the joint fit of E to
+    force and residual field is not on a coarse mesh where the replay jumps between two
+    equilibria (a compliant base's press on 13x5x5: see
+    :mod:`core.simulation.contact`).
+
+    Args:
+        prepared: the session (its ``names`` sequences need force columns).
+        models: lists of effect dicts (SESSION_FORMAT.md), each replayed at ``youngs_modulus`` (Pa).
+        names: sequences (default: the train ones). variant: the law, Poisson's ratio and
+            grid (default: the replay's). dt: time step, s. element_size: as
+            :func:`youngs_model_form`'s.
+
+    Returns:
+        One E (Pa) per model, None where a replay diverged or the force gave no scale.
+    """
+    executor = executor or SerialExecutor()
+    names = _force_names(prepared, names)
+    sigma = _force_sigma(prepared, names)
+    sizes = variant_element_sizes(prepared, element_size)
+    h = None if sizes is None else sizes[variant.grid]
+    items = [(n, tuple(effects), float(youngs_modulus), variant, dt, h) for effects in models for n in names]
+    forces = executor.map(_run, prepared, items)
+    k = len(names)
+    return [_least_squares_youngs(prepared, names, forces[i * k:(i + 1) * k], youngs_modulus, sigma)
+            for i in range(len(models))]
+
+
+def _force_names(prepared: PreparedSession, names: Sequence[str] | None) -> list[str]:
+    return list(names) if names is not None else [n for n, s in prepared.sequences.items() if s.role == "train"]
+
+
+def _force_sigma(prepared: PreparedSession, names: Sequence[str]) -> np.ndarray:
+    """(3,) N: the force's noise per axis from the rest frames of ``names`` (ones when fewer than 10)."""
+    rest = [prepared.sequences[m].force_at(prepared.sequences[m].frame_times)[prepared.rest_frames(m)] for m in names
+            if prepared.sequences[m].force is not None]
+    rest = np.concatenate(rest) if rest else np.zeros((0, 3))
+    return np.maximum(np.sqrt(np.mean(rest**2, axis=0)), 1e-3) if rest.shape[0] >= 10 else np.ones(3)
+
+
+def _least_squares_youngs(prepared: PreparedSession, names: Sequence[str], forces, youngs_modulus: float,
+                          sigma: np.ndarray) -> float | None:
+    """``E f.m / f.f`` (noise-weighted) over the sequences ``names`` from the replayed forces
+    ``f`` (one (F, 3) array or None per sequence) at ``youngs_modulus`` and the measured ``m``."""
+    num = den = 0.0
+    for n, f in zip(names, forces):
+        seq = prepared.sequences[n]
+        if f is None or seq.force is None:
+            return None
+        fm = seq.force_at(seq.frame_times)  # the replay's force is on the robot's clock
+        num += float(np.sum(f * fm / sigma**2))
+        den += float(np.sum(f * f / sigma**2))
+    return float(youngs_modulus) * num / den if den > 0 and num > 0 else None

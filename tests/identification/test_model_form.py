@@ -80,3 +80,37 @@ def test_the_box_keeps_its_grid_variants():
     assert _label(REFERENCE, None) == "corotational, nu 0.44, 13x5x5"
     assert _label(VARIANTS[-1], None, FINE) == "yeoh k=2, nu 0.44, 25x9x9"
     assert COARSE == (13, 5, 5)
+
+
+@pytest.fixture(scope="module")
+def on_a_soft_base(tmp_path_factory):
+    """A box session of the virtual lab whose phantom sits on a compliant base (50 kPa/m),
+    with force columns (small preset, 6 s sequences, seed 5)."""
+    from core.lab import generate_session
+    from core.lab.generate import PRESETS
+    from core.preparation import prepare_session
+
+    root = tmp_path_factory.mktemp("soft-base")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("TISSUETWIN_CACHE_DIR", str(root / "cache"))
+        path = generate_session(root / "session", preset=PRESETS["small"].with_duration(6.0), seed=5,
+                                effects=[{"kind": "base_compliance", "stiffness": 5e4}], with_force=True)
+        yield prepare_session(path)
+
+
+def test_the_force_fit_of_E_beside_a_compliant_base(on_a_soft_base):
+    """force_youngs refits E along the force of several models in one map: without the base
+    the replay reads the phantom soft (the base took part of every press); with it E rises,
+    the more the softer the base, and equals youngs_model_form's reference fit."""
+    from core.identification.model_form import force_youngs, youngs_model_form
+
+    prepared = on_a_soft_base
+    E = 5000.0
+    models = [[], *([{"kind": "base_compliance", "stiffness": k}] for k in (2e5, 5e4, 2.5e4))]
+    E0, E_stiff, E_lab, E_soft = force_youngs(prepared, models, E)
+    # measured: 1958, 2585, 4146 and 6005 Pa for the lab's 5000 Pa on its finer mesh
+    assert E0 < E_stiff < E_lab < E_soft
+    assert E_lab / E0 > 1.8
+    assert E_lab == pytest.approx(5000.0, rel=0.3)  # with the lab's base, near the lab's E
+    assert E0 == pytest.approx(youngs_model_form(prepared, [], E, variants=())["variants"][0]["youngs_modulus"],
+                               rel=1e-12)
