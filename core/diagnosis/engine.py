@@ -74,7 +74,7 @@ from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
-from core.diagnosis.youngs import youngs_of_extended
+from core.diagnosis.youngs import unexcluded_effects, youngs_of_extended
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.simulation.effects import EFFECT_KINDS, FitSpace
@@ -499,11 +499,6 @@ def diagnose_prepared(
     ext_effects = [e for _, f, _ in claimed for e in f.effects]
     lap("refits")
 
-    # E with the claimed causes, under the model-form variants (core.diagnosis.youngs)
-    youngs, E_ext, ext_effects = youngs_of_extended(prepared, ev, cfg, executor, joint=joint, claimed=bool(claimed),
-                                                    effects=ext_effects, youngs_modulus=E_cur, e_fit=e_fit, say=say)
-    lap("youngs")
-
     det = None
     if cfg.detectability and last is not None:
         say(0.8, "how large each kind would have to be to show")
@@ -512,6 +507,15 @@ def diagnose_prepared(
                             small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
                                                                       f"how large each kind would have to be to show: {kind}"))
         lap("detectability")
+
+    # E with the claimed causes, under the model-form variants and beside the unclaimed
+    # causes the held-out data leaned towards (core.diagnosis.youngs)
+    unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
+                                    [c.kind for c, _, _ in claimed])
+    youngs, E_ext, ext_effects = youngs_of_extended(prepared, ev, cfg, executor, joint=joint, claimed=bool(claimed),
+                                                    effects=ext_effects, youngs_modulus=E_cur, e_fit=e_fit,
+                                                    unexcluded=unexcluded, say=say)
+    lap("youngs")
 
     # the fields the report shows on train and validation (the fine grid's runs of the
     # refits), taken now: the runs cache is then emptied, since the test stage replays

@@ -46,3 +46,43 @@ def test_gravity_read_at_the_reported_youngs_modulus():
         math.sqrt(1.23**2 + 1.46**2 + 16.6**2) * 4803.0 / 8541.0)
     assert gravity_at_reported_youngs([0, 0, -9.81], {"value": 5000.0, "replay_grid_value_used": 5020.0}) is None
     assert gravity_at_reported_youngs([0, 0, -9.81], {"value": None, "replay_grid_value_used": 5000.0}) is None
+
+
+def test_unclaimed_causes_widen_the_interval_by_their_ratios():
+    """A compliant base the held-out data leaned towards raises E (the base softened the
+    force); a robot offset lowers it (a deeper press): each end moves by the ratio on its
+    side, and the verdict follows the widened interval."""
+    mf = {"low": 4000.0, "high": 6000.0, "variants": []}
+    moved = [{"kind": "base_compliance", "basis": "held-out drop 13147", "effect": {}, "ratio": 1.8},
+             {"kind": "kinematic_offset", "basis": "held-out drop 3011", "effect": {}, "ratio": 0.9},
+             {"kind": "gravity", "basis": "held-out drop 5", "effect": {}, "ratio": 1.01}]
+    plain = joint_youngs(_fit(4900.0, 0.001), mf)
+    wide = joint_youngs(_fit(4900.0, 0.001), mf, moved)
+    assert wide["interval"][0] == pytest.approx(plain["interval"][0] * 0.9)
+    assert wide["interval"][1] == pytest.approx(plain["interval"][1] * 1.8)
+    assert plain["identifiable"] is True and wide["identifiable"] is False  # 1.5 x 1.8 / 0.9 = 3.0 (> 3 with the 0.1 %)
+    assert "base compliance" not in plain["reason"]
+    assert "an unclaimed base compliance (held-out drop 13147) moves E by a factor 1.80" in wide["reason"]
+    assert [u["kind"] for u in wide["unexcluded_causes"]] == ["base_compliance", "kinematic_offset", "gravity"]
+    # ratios on one side only move that end
+    up = joint_youngs(_fit(4900.0, 0.001), mf, moved[:1])
+    assert up["interval"][0] == pytest.approx(plain["interval"][0])
+
+
+def test_the_unclaimed_causes_are_those_the_held_out_data_leaned_towards():
+    from core.diagnosis.youngs import unexcluded_effects
+
+    def fit(effect):
+        return SimpleNamespace(effect=effect)
+
+    evidence = {
+        "gravity": (fit({"kind": "gravity", "g": [0, 0, -9]}), 5000.0),  # claimed
+        "base_compliance": (fit({"kind": "base_compliance", "stiffness": 4e4}), 13147.0),
+        "probe_radius": (fit({"kind": "probe_radius", "radius": 0.006}), -250.0),  # held-out data worse
+        "time_offset": (fit({"kind": "time_offset", "offset": 0.07}), 0.0),
+        "inclusion": (fit(None), 30.0),  # no effect fitted
+    }
+    out = unexcluded_effects(evidence, claimed=["gravity"])
+    assert [(k, e) for k, e, _ in out] == [("base_compliance", {"kind": "base_compliance", "stiffness": 4e4})]
+    assert "13147" in out[0][2]
+    assert unexcluded_effects({}, []) == []
