@@ -63,8 +63,8 @@ def unexcluded_effects(evidence: Mapping[str, tuple[Fit, float]], claimed: Seque
 
 
 def unexcluded_youngs(prepared: PreparedSession, effects: Sequence[dict], youngs_modulus: float,
-                      unexcluded: Sequence[tuple[str, dict, str]], *, executor=None,
-                      element_size: float | None = None) -> list[dict]:
+                      unexcluded: Sequence[tuple[str, dict, str]], *, reference: float | None = None,
+                      executor=None, element_size: float | None = None) -> list[dict]:
     """How far each unclaimed cause the held-out data leaned towards moves E.
 
     For each ``(kind, effect, basis)`` of :func:`unexcluded_effects`, E is refitted to the
@@ -79,6 +79,9 @@ def unexcluded_youngs(prepared: PreparedSession, effects: Sequence[dict], youngs
     Args:
         effects: the model's effects (the claimed causes; dicts of SESSION_FORMAT.md).
         youngs_modulus: the model's E (Pa) the replays run at.
+        reference: E (Pa) already refitted this way without any of them (the model-form
+            reference of :func:`core.identification.model_form.youngs_model_form`, the same
+            replays), or None to refit it here.
         executor: runs the replays (default serial). element_size: of a phantom given by
             ``phantom.stl`` (m; None: the mesher's default).
 
@@ -88,10 +91,12 @@ def unexcluded_youngs(prepared: PreparedSession, effects: Sequence[dict], youngs
     """
     if not unexcluded:
         return []
-    models = [list(effects)] + [list(effects) + [effect] for _, effect, _ in unexcluded]
+    models = ([] if reference is not None else [list(effects)]) + [list(effects) + [e] for _, e, _ in unexcluded]
     fitted = force_youngs(prepared, models, youngs_modulus, executor=executor, element_size=element_size)
-    E0, out = fitted[0], []
-    for (kind, effect, basis), E_u in zip(unexcluded, fitted[1:]):
+    if reference is None:
+        reference, fitted = fitted[0], fitted[1:]
+    E0, out = reference, []
+    for (kind, effect, basis), E_u in zip(unexcluded, fitted):
         if E0 and E_u and math.isfinite(E_u):
             out.append({"kind": kind, "basis": basis, "effect": effect, "ratio": float(E_u / E0)})
     return out
@@ -207,9 +212,9 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
         moved = []
         if unexcluded:
             say(0.92, "Young's modulus beside the unclaimed causes the held-out data leaned towards")
-            moved = unexcluded_youngs(prepared, effects, E_ext, unexcluded, executor=executor,
-                                      element_size=cfg.element_size)
-            ev.simulations += (len(unexcluded) + 1) * len(ev.names["train"])
+            moved = unexcluded_youngs(prepared, effects, E_ext, unexcluded, reference=mf["variants"][0]["youngs_modulus"],
+                                      executor=executor, element_size=cfg.element_size)
+            ev.simulations += len(unexcluded) * len(ev.names["train"])
         youngs = joint_youngs(e_fit, mf, moved)
     else:
         say(0.9, "fitting Young's modulus with the claimed causes")
