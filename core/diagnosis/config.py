@@ -79,6 +79,11 @@ class DiagnosisConfig:
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
             claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
             step from the coarse fit.
+        joint_refit_iterations: with force data, Levenberg-Marquardt iterations of the
+            claimed causes' refit with E on ``fine_grid`` (each cause with E in turn;
+            :func:`core.diagnosis.worlds.refit_jointly`; 0: E alone beside them, one iteration).
+        world_refit_iterations: iterations of that refit in each model-form world on the
+            coarse grid (:func:`core.diagnosis.worlds.claimed_worlds`; 0: no worlds).
         max_causes: most causes claimed.
         fit_youngs: report E fitted with the claimed causes (otherwise keep ``youngs_modulus``).
         refine_mesh, n_boot: passed to the E fit (no force data); n_boot is also the
@@ -124,6 +129,8 @@ class DiagnosisConfig:
     lm_iterations: int = 4
     lm_tolerance: float = 1.0
     fine_refit_iterations: int = 1
+    joint_refit_iterations: int = 3
+    world_refit_iterations: int = 3
     max_causes: int = 3
     fit_youngs: bool = True
     refine_mesh: bool = True

@@ -74,6 +74,7 @@ from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
+from core.diagnosis.worlds import with_intervals
 from core.diagnosis.youngs import unexcluded_effects, youngs_of_extended
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
@@ -512,9 +513,12 @@ def diagnose_prepared(
     # causes the held-out data leaned towards (core.diagnosis.youngs)
     unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
                                     [c.kind for c, _, _ in claimed])
-    youngs, E_ext, ext_effects = youngs_of_extended(prepared, ev, cfg, executor, joint=joint, claimed=bool(claimed),
-                                                    effects=ext_effects, youngs_modulus=E_cur, e_fit=e_fit,
-                                                    unexcluded=unexcluded, say=say)
+    youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
+        prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed], effects=ext_effects,
+        youngs_modulus=E_cur, e_fit=e_fit, unexcluded=unexcluded, say=say)
+    # the claimed causes as refitted with E, their intervals holding their model-form worlds
+    claimed = [(c, g, with_intervals(replace(rep, **fit_fields(c, g)) if g is not f else rep, c, g, worlds))
+               for (c, f, rep), (_, g) in zip(claimed, refits)]
     lap("youngs")
 
     # the fields the report shows on train and validation (the fine grid's runs of the
@@ -540,7 +544,7 @@ def diagnose_prepared(
     executor.run_everywhere(drop_binned_points)
 
     # test errors: base, each cause alone, extended
-    say(0.9, "measuring the gain on the test sequences")
+    say(0.96, "measuring the gain on the test sequences")
     test_blocks = ev.frame_blocks("test")
     # the base, the extended model and each cause alone on test, in one map
     base_test, ext_runs, *cause_runs = ev.runs_together(

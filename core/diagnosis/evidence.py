@@ -55,6 +55,10 @@ class Directions:
     fit_youngs: bool = False
     simulation: tuple = ()
     """``SimulationConfig`` fields changed from the run's default (as :class:`Spec`'s)."""
+    law: str | None = None
+    """Material law (None: the configured one), as :class:`Spec`'s; so are the next two."""
+    poisson_ratio: float | None = None
+    stiffening: float = 0.0
 
     @property
     def theta(self) -> np.ndarray:
@@ -265,6 +269,8 @@ class Spec:
     """Material law (None: the configured one); a model-form variant of :mod:`core.diagnosis.nuisance`."""
     poisson_ratio: float | None = None
     """Poisson's ratio (None: the configured one)."""
+    stiffening: float = 0.0
+    """The Yeoh coefficient of ``law`` "stable_yeoh"."""
     simulation: tuple = ()
     """``SimulationConfig`` fields changed from the run's default, as (name, value) pairs."""
 
@@ -342,13 +348,13 @@ class Evidence:
                 and tuple(grid) == tuple(c.fine_grid):
             element_size = self.fine_element_size  # any phantom: the fine mesh halves the element size
         return Trial(sequence=seq, youngs_modulus=spec.youngs_modulus, poisson_ratio=spec.poisson_ratio or c.poisson_ratio,
-                     grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim,
+                     grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim, stiffening=spec.stiffening,
                      element_size=element_size)
 
     @staticmethod
     def _key(spec: Spec, seq, paper, grid):
         return (repr(tuple(sorted(repr(sorted(e.items())) for e in spec.effects))), seq, spec.youngs_modulus, paper, grid,
-                spec.law, spec.poisson_ratio, spec.simulation)
+                spec.law, spec.poisson_ratio, spec.stiffening, spec.simulation)
 
     def runs(self, models: Sequence[Spec | Sequence[dict]], role: str, *, paper: bool = False,
              fine: bool = False) -> list[list[FieldRun]]:
@@ -377,7 +383,8 @@ class Evidence:
             names = self.names[req.role]
             grid = tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid else tuple(self.cfg.grid)
             if req.jacobian:
-                items = [(Spec(d.effects(d.theta), d.youngs(d.theta), simulation=d.simulation), d) for d in req.models]
+                items = [(Spec(d.effects(d.theta), d.youngs(d.theta), law=d.law, poisson_ratio=d.poisson_ratio,
+                               stiffening=d.stiffening, simulation=d.simulation), d) for d in req.models]
             else:
                 items = [(m if isinstance(m, Spec) else self.spec(m), None) for m in req.models]
             rows = []

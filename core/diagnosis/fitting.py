@@ -9,6 +9,7 @@ import numpy as np
 
 from core.diagnosis.evidence import Directions, Evidence, Spec
 from core.diagnosis.nuisance import Nuisance
+from core.identification.model_form import ModelFormVariant
 from core.simulation.effects import EFFECT_KINDS, FitSpace
 
 __all__ = ["Fit", "fit_candidate", "rss", "SCALE_FREE", "E_STEP", "LM_DAMPING"]
@@ -58,7 +59,8 @@ def rss(v: np.ndarray) -> float:
 
 def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E: float | None = None,
                   fit_youngs: bool = False, start: np.ndarray | None = None, fine: bool = False,
-                  iterations: int | None = None, nuisance: Nuisance | None = None) -> Fit:
+                  iterations: int | None = None, nuisance: Nuisance | None = None,
+                  world: ModelFormVariant | None = None, differences: bool = False) -> Fit:
     """Levenberg-Marquardt fit of one candidate's variables on train, the other effects
     ``fixed`` (on the coarse grid with the discrepancy shift, or on the fine grid when
     ``fine``); Nocedal & Wright (2006), Sec. 10.3. The Jacobian (the candidate's
@@ -74,6 +76,14 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
         iterations: most iterations (default ``cfg.lm_iterations``).
         nuisance: fit the residual that the nuisance directions leave (variable
             projection: their coefficients are solved in closed form at every point).
+        world: fit in another model-form world: this law, Poisson's ratio and Yeoh
+            stiffening (its grid is ignored: ``fine`` chooses), coarse runs unshifted
+            (the discrepancy shift maps the replay's coarse model onto its fine one,
+            not another model's).
+        differences: forward-difference Jacobians even with ``cfg.sensitivities`` (a
+            step's secant, where the exact derivative is local to a near-bifurcation:
+            measured on field seed 68's compliant base on 13x5x5 at nu 0.48, d force /
+            d log10 E of 39 kN in a frame whose force is 0.26 N, and the fit then took no step).
     """
     sigma2 = eng.sigma2
     E0 = float(E or eng.cfg.youngs_modulus)
@@ -88,15 +98,19 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     # fits on the fine grid step at cfg.fine_fit_dt (its reported runs at the simulator's default)
     sim = (("dt", float(eng.cfg.fine_fit_dt)),) if fine and eng.cfg.fine_fit_dt else ()
 
+    material = {} if world is None else {"law": world.law, "poisson_ratio": world.poisson_ratio,
+                                         "stiffening": world.stiffening}
+    shifted = not fine and world is None
+
     def spec(x) -> Spec:
         eff = [] if cand is None else [cand.to_effect(x[:nv])]
-        return Spec(tuple(fixed) + tuple(eff), float(10.0 ** x[nv]) if fit_youngs else E0, simulation=sim)
+        return Spec(tuple(fixed) + tuple(eff), float(10.0 ** x[nv]) if fit_youngs else E0, simulation=sim, **material)
 
     def runs(xs):
         return eng.runs([spec(x) for x in xs], "train", fine=fine)
 
     def raw(r):
-        return eng.vector(r, shifted=not fine)
+        return eng.vector(r, shifted=shifted)
 
     def vec(r):
         v = raw(r)
@@ -110,13 +124,13 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     n_iter = eng.cfg.lm_iterations if iterations is None else iterations
     # exact Jacobians, except for E alone among scale-free kinds: its semi-analytic column
     # (below) needs no replay of its own
-    exact = eng.cfg.sensitivities and not (cand is None and fit_youngs and semi_analytic)
+    exact = eng.cfg.sensitivities and not differences and not (cand is None and fit_youngs and semi_analytic)
 
     def jacobian_at(x):
         """(raw vector, its exact Jacobian) at x: one replay differentiated along every variable."""
-        d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs, simulation=sim)
+        d = Directions(tuple(fixed), cand, x[:nv], spec(x).youngs_modulus, fit_youngs, simulation=sim, **material)
         rj = eng.jacobian_runs([d], "train", fine=fine)[0]
-        return raw(rj), eng.jacobian(rj, shifted=not fine)
+        return raw(rj), eng.jacobian(rj, shifted=shifted)
 
     J = J_raw = J_next = None
     if exact and len(starts) == 1 and starts[0].size > 0 and n_iter > 0:
@@ -149,7 +163,7 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
             # dent and the field does not depend on it (trial steps are real runs)
             cols = runs(pts)
             J_raw = np.stack([(raw(c) - raw_x) / (s[j] - x[j]) for j, (c, s) in enumerate(zip(cols, pts))]
-                             + [eng.youngs_column(runs([x])[0], shifted=not fine)], axis=1)
+                             + [eng.youngs_column(runs([x])[0], shifted=shifted)], axis=1)
         else:
             if fit_youngs:
                 xe = x.copy()

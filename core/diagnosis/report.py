@@ -163,6 +163,14 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
                 lines += ["", f"Gravity was fitted on the replay grid at E {diag.youngs['replay_grid_value_used']:.4g} Pa; "
                               f"the sag is set by rho g / E, so at the reported E {diag.youngs['value']:.4g} Pa it reads "
                               f"|g| = {g:.2f} m/s^2."]
+        ranges = [f"{c.kind}.{k} {iv['interval'][0]:.4g}-{iv['interval'][1]:.4g} {iv['unit']}"
+                  + ("" if iv["model_form"] is None else
+                     f" (statistical {iv['statistical'][0]:.4g}-{iv['statistical'][1]:.4g}; refitted with E "
+                     f"in the model-form worlds {iv['model_form'][0]:.4g}-{iv['model_form'][1]:.4g})")
+                  for c in diag.causes for k, iv in c.intervals.items()
+                  if None not in iv["interval"] and None not in iv["statistical"]]
+        if ranges:
+            lines += ["", "95 % intervals of the claimed parameters: " + "; ".join(ranges) + "."]
         unid = [f"{c.kind}.{k}" for c in diag.causes for k, ok in c.identifiable.items() if not ok]
         if unid:
             lines += ["", "Not identifiable from these data (95 % interval too wide): " + ", ".join(unid) + "."]

@@ -50,6 +50,8 @@ class CauseReport:
             whether it was significantly worse (``inference.channel_worsening``).
         reproduction: the held-out drop ("observed") against the drop the fitted change
             itself would make ("expected"), chi2 (``inference.reproduction``).
+        intervals: a claimed cause's 95 % intervals by parameter, statistical and model-form
+            (:func:`core.diagnosis.worlds.parameter_intervals`; empty before they are known).
         model_form_bar: the largest held-out drop of the round's model at the ends of its
             model-form range, chi2 (a claim had to exceed it; diagnosis.json's
             ``model_form`` is the last round's), or None when the round needed none (no
@@ -78,6 +80,7 @@ class CauseReport:
     channels: dict = field(default_factory=dict)
     reproduction: dict = field(default_factory=dict)
     model_form_bar: float | None = None
+    intervals: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -174,6 +177,7 @@ class Diagnosis:
             "causes": [
                 {"kind": c.kind, "parameters": c.parameters, "test_error": c.test_error, "gain": c.gain,
                  "confidence": c.confidence, "identifiable": c.identifiable,
+                 **({"intervals": c.intervals} if c.intervals else {}),
                  "evidence": {"delta_chi2": c.delta_chi2, "p_value": c.p_value, "critical": c.critical,
                               "explained": c.explained, "round": c.round},
                  **({"force_test_rms": c.force_test_rms, "force_gain": c.force_gain} if c.force_gain is not None else {})}

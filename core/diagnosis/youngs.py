@@ -20,11 +20,13 @@ import numpy as np
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
+from core.diagnosis.worlds import claimed_worlds, refit_jointly
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import force_youngs, youngs_model_form
 from core.identification.trials import Trial
 from core.identification.verdict import MAX_RATIO
 from core.preparation import PreparedSession
+from core.simulation.effects import FitSpace
 
 __all__ = ["joint_youngs", "gravity_at_reported_youngs", "unexcluded_effects", "unexcluded_youngs",
            "youngs_of_extended"]
@@ -102,14 +104,17 @@ def unexcluded_youngs(prepared: PreparedSession, effects: Sequence[dict], youngs
     return out
 
 
-def joint_youngs(fit: Fit, model_form: dict | None = None, unexcluded: Sequence[dict] = ()) -> dict:
+def joint_youngs(fit: Fit, model_form: dict | None = None, unexcluded: Sequence[dict] = (),
+                 worlds: dict | None = None) -> dict:
     """The youngs_modulus entry of diagnosis.json from a joint fit (log10 E last): the
     value, and a 95 % interval that holds the Levenberg-Marquardt covariance's, the
     model-form range (``model_form`` of
     :func:`core.identification.model_form.youngs_model_form`: E refitted under other
     laws, Poisson's ratios and grids, each widened by the statistical interval) and the
     unclaimed causes the held-out data leaned towards (``unexcluded`` of
-    :func:`unexcluded_youngs`: a ratio below 1 moves the low end, above 1 the high one);
+    :func:`unexcluded_youngs`: a ratio below 1 moves the low end, above 1 the high one) and
+    E refitted with the claimed causes in each model-form world (``worlds`` of
+    :func:`core.diagnosis.worlds.claimed_worlds`, each widened by the statistical interval);
     identifiable by the fit's rule (:mod:`core.identification.verdict`): force data set a
     scale, and the interval spans at most :data:`~core.identification.verdict.MAX_RATIO`
     (3x). ``value`` stays the estimate either way (SESSION_FORMAT: it may be null)."""
@@ -132,6 +137,12 @@ def joint_youngs(fit: Fit, model_form: dict | None = None, unexcluded: Sequence[
         out["value"] = float(np.sqrt(model_form["low"] * model_form["high"]))
     holds = ("statistical and model form: the law, Poisson's ratio and grid variants" if model_form
              else "statistical")
+    world_E = [w["youngs_modulus"] for w in (worlds or {}).get("worlds", []) if math.isfinite(w["youngs_modulus"])]
+    if world_E:
+        f = 10.0 ** (1.96 * se)
+        lo, hi = min(lo, min(world_E) / f), max(hi, max(world_E) * f)
+        out["claimed_causes_model_form"] = worlds
+        holds += "; the claimed causes refitted with E under those variants"
     moved = ""
     if unexcluded:
         ratios = [u["ratio"] for u in unexcluded]
@@ -176,15 +187,19 @@ def gravity_at_reported_youngs(g, youngs: dict | None) -> float | None:
 
 
 def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisConfig, executor, *,
-                       joint: bool, claimed: bool, effects: list[dict], youngs_modulus: float, e_fit: Fit | None,
-                       unexcluded: Sequence[tuple[str, dict, str]] = (),
-                       say: Callable[[float, str], None] = lambda p, m: None) -> tuple[dict, float, list[dict]]:
+                       joint: bool, claimed: Sequence[tuple[FitSpace, Fit]], effects: list[dict], youngs_modulus: float,
+                       e_fit: Fit | None, unexcluded: Sequence[tuple[str, dict, str]] = (),
+                       say: Callable[[float, str], None] = lambda p, m: None
+                       ) -> tuple[dict, float, list[dict], list[tuple[FitSpace, Fit]], dict | None]:
     """Young's modulus of the extended model: diagnosis.json's ``youngs_modulus``.
 
-    With force data (``joint``), E is refitted with the claimed ``effects`` on the fine grid
-    (when a cause was ``claimed``; else ``e_fit``, the last round's fit, stands), under the
-    model-form variants and beside each unclaimed cause the held-out data leaned towards
-    (``unexcluded``, :func:`unexcluded_effects`; :func:`unexcluded_youngs`). Without force
+    With force data (``joint``), E is refitted with the claimed causes on the fine grid
+    (:func:`core.diagnosis.worlds.refit_jointly`: the causes with it, as they trade along
+    the force; when a cause was ``claimed``; else ``e_fit``, the last round's fit, stands), under the
+    model-form variants, beside each unclaimed cause the held-out data leaned towards
+    (``unexcluded``, :func:`unexcluded_effects`; :func:`unexcluded_youngs`) and, with the
+    claimed causes refitted with it, in each model-form world
+    (:func:`core.diagnosis.worlds.claimed_worlds`). Without force
     data :func:`core.identification.fit_youngs_modulus` fits E with the claimed effects (a
     gravity at its physical 9.81 m/s^2, since the fit measures g / E); the unexcluded causes
     are not carried there (that fit says itself when E cannot be identified, which without
@@ -192,17 +207,25 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
 
     Args:
         executor: the diagnosis's :class:`~core.identification.execution.Executor`.
+        claimed: ``[(fit space, fit)]`` of the claimed causes (their last fits, with Jacobians).
         effects: the claimed causes' effect dicts (fitted on the fine grid).
         youngs_modulus: the model's current E (Pa, coarse grid).
         unexcluded: ``[(kind, effect dict, basis)]`` of :func:`unexcluded_effects`.
 
     Returns:
         (the ``youngs_modulus`` dict with ``replay_grid_value_used``, the E the test stage
-        replays with (Pa), the effects it replays with).
+        replays with (Pa), the effects it replays with, the claimed causes' fits (refitted
+        with E when they were), their model-form worlds of
+        :func:`~core.diagnosis.worlds.claimed_worlds` or None).
     """
-    E_ext = youngs_modulus
+    E_ext, worlds, claimed = youngs_modulus, None, list(claimed)
     if joint:
-        if claimed:
+        if claimed and cfg.joint_refit_iterations > 0:
+            say(0.88, "refitting the claimed causes with Young's modulus")
+            claimed, e_fit = refit_jointly(ev, claimed, youngs_modulus, fine=bool(cfg.fine_grid),
+                                           iterations=cfg.joint_refit_iterations)
+            effects = [e for _, f in claimed for e in f.effects]
+        elif claimed:
             e_fit = fit_candidate(ev, None, effects, E=youngs_modulus, fit_youngs=True, fine=bool(cfg.fine_grid),
                                   iterations=max(cfg.fine_refit_iterations, 1))
         E_ext = e_fit.youngs_modulus
@@ -215,7 +238,10 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             moved = unexcluded_youngs(prepared, effects, E_ext, unexcluded, reference=mf["variants"][0]["youngs_modulus"],
                                       executor=executor, element_size=cfg.element_size)
             ev.simulations += len(unexcluded) * len(ev.names["train"])
-        youngs = joint_youngs(e_fit, mf, moved)
+        if claimed and cfg.world_refit_iterations > 0:
+            say(0.94, "the claimed causes and Young's modulus refitted in each model-form world")
+            worlds = claimed_worlds(ev, claimed, E_ext, iterations=cfg.world_refit_iterations)
+        youngs = joint_youngs(e_fit, mf, moved, worlds)
     else:
         say(0.9, "fitting Young's modulus with the claimed causes")
         fit_effects = [({"kind": "gravity", "g": list(9.81 * np.asarray(e["g"]) / max(np.linalg.norm(e["g"]), 1e-12))}
@@ -232,4 +258,4 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
                 E_ext = fit.coarse_value
                 effects = fit_effects
     youngs["replay_grid_value_used"] = E_ext
-    return youngs, E_ext, effects
+    return youngs, E_ext, effects, claimed, worlds

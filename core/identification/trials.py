@@ -23,7 +23,8 @@ class Trial:
         youngs_modulus: Pa. poisson_ratio: -.
         grid: node grid (nx, ny, nz) of a box phantom. element_size: target element
             size of an STL phantom, m (None: its default; see ``ReplayConfig``).
-            law: material law (see ``Material``).
+            law: material law (see ``Material``). stiffening: its Yeoh coefficient
+            ("stable_yeoh" only).
         effects: model extensions as ``{"kind": ..., **parameters}`` dicts (SI, phantom frame).
         simulation: numerical settings.
         paper_error: measure the paper's point-to-mesh error on every frame (False: only
@@ -37,6 +38,7 @@ class Trial:
     grid: tuple[int, int, int] = (13, 5, 5)
     law: str = "corotational"
     effects: tuple = ()
+    stiffening: float = 0.0
     element_size: float | None = None
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     paper_error: bool = True
@@ -48,6 +50,7 @@ class Trial:
             grid=self.grid,
             element_size=self.element_size,
             law=self.law,
+            stiffening=self.stiffening,
             simulation=self.simulation,
             effects=tuple(effect_from_dict(dict(e)) for e in self.effects),
             sequences=(self.sequence,),

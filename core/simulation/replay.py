@@ -51,7 +51,9 @@ class ReplayConfig:
         element_size: target element size of a phantom given by ``phantom.stl``, m
             (:func:`core.simulation.meshing.tetrahedralise`; None: about the paper's node
             count). Unused for a box.
-        law: material law, "corotational" (the paper's) or "stable_neo_hookean".
+        law: material law, "corotational" (the paper's), "stable_neo_hookean" or
+            "stable_yeoh" (see ``Material``).
+        stiffening: the Yeoh coefficient of "stable_yeoh" (dimensionless, >= 0).
         simulation: numerical settings of the FEM.
         effects: model options beyond the base model (see ``core.simulation.effects``).
         sequences: names to replay; None replays all.
@@ -67,6 +69,7 @@ class ReplayConfig:
     grid: tuple[int, int, int] = (13, 5, 5)
     element_size: float | None = None
     law: str = "corotational"
+    stiffening: float = 0.0
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     effects: tuple[Effect, ...] = ()
     sequences: tuple[str, ...] | None = None
@@ -259,7 +262,7 @@ def build_replay_model(prepared: PreparedSession, config: ReplayConfig, *, facto
     return build_model(
         mesh,
         prepared.mass,
-        Material(config.youngs_modulus, config.poisson_ratio, config.law),
+        Material(config.youngs_modulus, config.poisson_ratio, config.law, stiffening=config.stiffening),
         config.simulation,
         config.effects,
         factorize=factorize,

@@ -1,0 +1,90 @@
+"""A claimed cause refitted with E, and in other model-form worlds (core.diagnosis.worlds)."""
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.diagnosis.candidates import candidates
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.evidence import Evidence
+from core.diagnosis.fitting import Fit, fit_candidate
+from core.diagnosis.patches import field_layout
+from core.diagnosis.results import CauseReport
+from core.diagnosis.worlds import claimed_worlds, parameter_intervals, refit_jointly, with_intervals
+from core.identification.execution import SerialExecutor
+from core.identification.model_form import VARIANTS, force_youngs
+from core.lab import generate_session
+from core.preparation.prepare import prepare_session
+from tests._presets import SHORT_SMALL
+
+STIFFNESS = 5.0e4
+"""The hidden base's stiffness, Pa/m (the lab's E is the small preset's 5 kPa)."""
+
+
+@pytest.fixture(scope="module")
+def soft_base(tmp_path_factory):
+    path = generate_session(tmp_path_factory.mktemp("worlds") / "base", seed=12, preset=SHORT_SMALL, with_force=True,
+                            effects=[{"kind": "base_compliance", "stiffness": STIFFNESS}])
+    truth = json.loads((Path(path) / "truth.json").read_text())
+    prepared = prepare_session(path)
+    cfg = DiagnosisConfig()
+    ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
+    ev.sigma2 = 1e-6  # the point noise (1 mm) in m^2: the force and the field weighed as in a diagnosis
+    return prepared, ev, truth["youngs_modulus"]
+
+
+def test_a_base_claimed_at_the_wrong_e_is_refitted_with_it_and_its_worlds_hold_the_lab(soft_base):
+    """The situation of field seed 68: E fitted to the force without the base is far too
+    low, so the base fitted at that E is far too soft; refitted together, both come back
+    near the lab's (measured: 47.6 kPa/m and 5947 Pa for 50 kPa/m and 5000 Pa), and the
+    model-form worlds' interval holds the lab's stiffness and E (measured: the statistical
+    one alone, 46.8-48.3 kPa/m, does not)."""
+    prepared, ev, E_lab = soft_base
+    space = candidates(prepared.size, prepared.probe_radius)["base_compliance"]
+    E0 = force_youngs(prepared, [[]], 5000.0)[0]
+    assert E0 < 0.6 * E_lab  # measured 2115 Pa: a compliant base reads as a softer phantom
+    f = fit_candidate(ev, space, [], E=E0, fine=True, iterations=3)
+    assert 10.0 ** f.x[0] < 0.6 * STIFFNESS  # measured 19.5 kPa/m
+
+    (c, g), = refit_jointly(ev, [(space, f)], E0, fine=True, iterations=3)[0]
+    assert g.x.size == 2 and g.youngs_modulus == pytest.approx(10.0 ** g.x[-1])
+    assert 10.0 ** g.x[0] == pytest.approx(STIFFNESS, rel=0.15)
+    assert g.youngs_modulus == pytest.approx(E_lab, rel=0.25)
+
+    worlds = claimed_worlds(ev, [(space, g)], g.youngs_modulus, iterations=3)
+    # the replay's own coarse world, each variant on the coarse grid and carried to the fine one
+    assert len(worlds["worlds"]) == 1 + 2 * len(VARIANTS)
+    iv = parameter_intervals(space, g, worlds)["stiffness"]
+    assert iv["unit"] == "Pa/m" and iv["model_form"] is not None
+    assert iv["interval"][0] <= STIFFNESS <= iv["interval"][1]
+    assert iv["interval"][0] <= iv["statistical"][0] and iv["statistical"][1] <= iv["interval"][1]
+    f_stat = 10.0 ** (1.96 * g.se[-1])
+    E_w = [w["youngs_modulus"] for w in worlds["worlds"]]
+    assert min(E_w) / f_stat <= E_lab <= max(E_w) * f_stat
+
+
+def _fit(x, se, effect=None):
+    return Fit(np.asarray(x, dtype=float), np.asarray(se, dtype=float), 0.0, effect, 5000.0)
+
+
+def test_intervals_of_a_log_variable_are_given_in_its_unit_and_judge_identifiability():
+    space = candidates((0.08, 0.04, 0.04), 0.005)["base_compliance"]
+    fit = _fit([4.7, 3.7], [0.001, 0.001])
+    narrow = {"worlds": [{"variables": {"base_compliance": [4.6]}}, {"variables": {"base_compliance": [4.9]}}]}
+    iv = parameter_intervals(space, fit, narrow)["stiffness"]
+    assert iv["statistical"] == pytest.approx([10 ** (4.7 - 0.00196), 10 ** (4.7 + 0.00196)])
+    assert iv["model_form"] == pytest.approx([10 ** 4.6, 10 ** 4.9])
+    assert iv["interval"] == pytest.approx([10 ** (4.6 - 0.00196), 10 ** (4.9 + 0.00196)])
+    rep = CauseReport(kind="base_compliance", parameters={"stiffness": 10 ** 4.7}, fit_variables={},
+                      identifiable={"stiffness": True}, delta_chi2=1.0, explained=0.1, confidence=0.99, round=0)
+    assert with_intervals(rep, space, fit, narrow).identifiable["stiffness"] is True
+    wide = {"worlds": [{"variables": {"base_compliance": [4.0]}}, {"variables": {"base_compliance": [5.2]}}]}
+    judged = with_intervals(rep, space, fit, wide)
+    assert judged.identifiable["stiffness"] is False  # the worlds span 1.2 decades
+    assert judged.intervals["stiffness"]["interval"][1] / judged.intervals["stiffness"]["interval"][0] \
+        == pytest.approx(10 ** (1.2 + 2 * 0.00196))
+    assert math.isclose(with_intervals(rep, space, fit, None).intervals["stiffness"]["interval"][0],
+                        iv["statistical"][0])
