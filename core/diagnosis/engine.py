@@ -63,7 +63,7 @@ import numpy as np
 
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import detectability, unobservable
+from core.diagnosis.detectability import detectability, unobservable, withdraw_undersized
 from core.diagnosis.evidence import Directions, Evidence, FieldRun, Request, Spec, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
@@ -500,7 +500,7 @@ def diagnose_prepared(
     ext_effects = [e for _, f, _ in claimed for e in f.effects]
     lap("refits")
 
-    det = None
+    det, gone = None, []
     if cfg.detectability and last is not None:
         say(0.8, "how large each kind would have to be to show")
         det = detectability(ev, last, ctx_all, cfg, cands, last_evidence, palp,
@@ -508,11 +508,17 @@ def diagnose_prepared(
                             small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
                                                                       f"how large each kind would have to be to show: {kind}"))
         lap("detectability")
+        claimed, det, withdrawn, gone = withdraw_undersized(claimed, det, ctx_all)
+        if withdrawn:  # E is refitted without them, and their fits go beside it as unclaimed causes
+            notes += [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in withdrawn.items()]
+            reports = [replace(r, claimed=False) if r.kind in withdrawn else r for r in reports]
+            ext_effects = [e for _, f, _ in claimed for e in f.effects]
+            e_fit = e_fit if claimed else base_fit
 
     # E with the claimed causes, under the model-form variants and beside the unclaimed
     # causes the held-out data leaned towards (core.diagnosis.youngs)
     unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
-                                    [c.kind for c, _, _ in claimed])
+                                    [c.kind for c, _, _ in claimed]) + gone
     youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
         prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed], effects=ext_effects,
         youngs_modulus=E_cur, e_fit=e_fit, unexcluded=unexcluded, say=say)

@@ -88,3 +88,29 @@ def test_intervals_of_a_log_variable_are_given_in_its_unit_and_judge_identifiabi
         == pytest.approx(10 ** (1.2 + 2 * 0.00196))
     assert math.isclose(with_intervals(rep, space, fit, None).intervals["stiffness"]["interval"][0],
                         iv["statistical"][0])
+
+
+def test_a_claim_far_below_its_own_detectability_is_withdrawn():
+    """Field seed 71's spurious compliant bases: claimed at 1e8 and 4.7e6 Pa/m where the data
+    needed 1/7.5e-4 and 1/3.7e-5 Pa/m (size 1/stiffness) to claim one by its signature; a
+    true base (seed 68: 1/2.8e-5 for 1/1.6e-6) and a gravity just below its min_size stay."""
+    from core.diagnosis.detectability import UNDERSIZED, undersized_claims
+    from core.diagnosis.results import Detectability
+
+    def det(kind, min_size):
+        return Detectability(kind, min_size, {}, "found", "found", "")
+
+    out = undersized_claims({"base_compliance": {"kind": "base_compliance", "stiffness": 1e8}},
+                            {"base_compliance": det("base_compliance", 7.5e-4)}, None)
+    assert set(out) == {"base_compliance"} and "withdrawn" in out["base_compliance"]
+    assert undersized_claims({"base_compliance": {"kind": "base_compliance", "stiffness": 1.0 / 2.77e-5},
+                              "gravity": {"kind": "gravity", "g": [0.0, 0.0, -9.72]}},
+                             {"base_compliance": det("base_compliance", 1.6e-6), "gravity": det("gravity", 19.9)},
+                             None) == {}
+    # no size of the kind would have been claimed: withdrawn whatever its size
+    assert set(undersized_claims({"base_compliance": {"kind": "base_compliance", "stiffness": 4.65e6}},
+                                 {"base_compliance": det("base_compliance", None)}, None)) == {"base_compliance"}
+    g = 9.81
+    edge = {"gravity": {"kind": "gravity", "g": [0.0, 0.0, -g]}}
+    assert undersized_claims(edge, {"gravity": det("gravity", 0.99 * g / UNDERSIZED)}, None) == {}
+    assert set(undersized_claims(edge, {"gravity": det("gravity", 1.01 * g / UNDERSIZED)}, None)) == {"gravity"}
