@@ -75,7 +75,7 @@ from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
 from core.diagnosis.worlds import with_intervals
-from core.diagnosis.youngs import unexcluded_effects, youngs_of_extended
+from core.diagnosis.youngs import unexcluded_effects, with_untold_kinds, youngs_of_extended
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.simulation.effects import EFFECT_KINDS, FitSpace
@@ -525,6 +525,8 @@ def diagnose_prepared(
     # the claimed causes as refitted with E, their intervals holding their model-form worlds
     claimed = [(c, g, with_intervals(replace(rep, **fit_fields(c, g)) if g is not f else rep, c, g, worlds))
                for (c, f, rep), (_, g) in zip(claimed, refits)]
+    if det:
+        youngs = with_untold_kinds(youngs, {k: d.answer for k, d in det.items()})
     lap("youngs")
 
     # the fields the report shows on train and validation (the fine grid's runs of the

@@ -29,7 +29,7 @@ from core.preparation import PreparedSession
 from core.simulation.effects import FitSpace
 
 __all__ = ["joint_youngs", "gravity_at_reported_youngs", "unexcluded_effects", "unexcluded_youngs",
-           "youngs_of_extended"]
+           "youngs_of_extended", "with_untold_kinds"]
 
 
 def unexcluded_effects(evidence: Mapping[str, tuple[Fit, float]], claimed: Sequence[str]) -> list[tuple[str, dict, str]]:
@@ -164,6 +164,30 @@ def joint_youngs(fit: Fit, model_form: dict | None = None, unexcluded: Sequence[
                            f"cannot pin E down{moved}"),
                 "statistic": {"rule": "core.identification.verdict (the fit's): structural and interval",
                               "structural": True, "interval": [lo, hi], "ratio": ratio, "max_ratio": MAX_RATIO}})
+    return out
+
+
+def with_untold_kinds(youngs: dict, answers: Mapping[str, str]) -> dict:
+    """``youngs`` (diagnosis.json's ``youngs_modulus``) saying which kinds its interval
+    assumes absent: those these data cannot tell (``answers``: {kind: answer}). Any of
+    them may be there at any size, and most trade with E along the force (a compliant base
+    softens it as a softer phantom does; a robot offset deepens every press). Measured on
+    field seed 71 with a hidden compliant base answered "cannot tell": E 1.49-4.71 kPa for
+    the lab's 11.0. The interval is not widened by them (at their largest plausible sizes
+    E would never be identifiable); it is stated under that assumption, in
+    ``assumes_absent`` and in ``reason``.
+
+    Returns:
+        a copy of ``youngs`` (unchanged without such kinds, or without a stated interval).
+    """
+    untold = sorted(k for k, a in answers.items() if a == "cannot_tell")
+    if not untold or youngs.get("interval") is None:
+        return youngs
+    out = dict(youngs, assumes_absent=untold)
+    names = ", ".join(k.replace("_", " ") for k in untold)
+    out["reason"] = (youngs.get("reason") or "") + (
+        f"; the interval assumes no {names}: these data cannot tell whether they are there, and each may "
+        f"move E (a compliant base softens the force as a softer phantom does)")
     return out
 
 

@@ -86,3 +86,18 @@ def test_the_unclaimed_causes_are_those_the_held_out_data_leaned_towards():
     assert [(k, e) for k, e, _ in out] == [("base_compliance", {"kind": "base_compliance", "stiffness": 4e4})]
     assert "13147" in out[0][2]
     assert unexcluded_effects({}, []) == []
+
+
+def test_the_interval_says_which_kinds_it_assumes_absent():
+    from core.diagnosis.youngs import with_untold_kinds
+
+    v = joint_youngs(_fit(4900.0, 0.001), {"low": 4000.0, "high": 6000.0, "variants": []})
+    answers = {"gravity": "found", "base_compliance": "cannot_tell", "friction": "not_found",
+               "kinematic_offset": "cannot_tell"}
+    out = with_untold_kinds(v, answers)
+    assert out["assumes_absent"] == ["base_compliance", "kinematic_offset"]
+    assert out["interval"] == v["interval"] and out["identifiable"] == v["identifiable"]
+    assert out["reason"].startswith(v["reason"]) and "assumes no base compliance, kinematic offset" in out["reason"]
+    assert "assumes_absent" not in v  # a copy
+    assert with_untold_kinds(v, {"gravity": "found"}) == v
+    assert with_untold_kinds({"value": None, "interval": None, "identifiable": False}, answers)["interval"] is None
