@@ -459,7 +459,7 @@ def undersized_claims(effects: dict[str, dict], det: dict, ctx: PhantomContext) 
     (below :data:`UNDERSIZED` times it), or of a kind that could not be told at any
     size, was not made by the kind's signature: its fit absorbed a residual of another
     shape (a model-form gap: a compliant base at 1e8 Pa/m, nearly a fixed one, bends the
-    force-depth curve of a stiffening phantom by 1 %, which a force channel of 2 N at
+    force-depth curve of a stiffening phantom by at most 1 %, which a force channel of 2 N at
     7.6 mN noise weighs at 2.9e6 chi2). Such a claim is withdrawn.
 
     Args:

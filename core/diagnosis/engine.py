@@ -497,7 +497,6 @@ def diagnose_prepared(
             g = fit_candidate(ev, c, others, E=E_cur, start=f.x[: nv[c.kind]], fine=True,
                               iterations=cfg.fine_refit_iterations)
             claimed[i] = (c, g, replace(rep, **fit_fields(c, g)))
-    ext_effects = [e for _, f, _ in claimed for e in f.effects]
     lap("refits")
 
     det, gone = None, []
@@ -512,7 +511,6 @@ def diagnose_prepared(
         if withdrawn:  # E is refitted without them, and their fits go beside it as unclaimed causes
             notes += [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in withdrawn.items()]
             reports = [replace(r, claimed=False) if r.kind in withdrawn else r for r in reports]
-            ext_effects = [e for _, f, _ in claimed for e in f.effects]
             e_fit = e_fit if claimed else base_fit
 
     # E with the claimed causes, under the model-form variants and beside the unclaimed
@@ -520,7 +518,7 @@ def diagnose_prepared(
     unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
                                     [c.kind for c, _, _ in claimed]) + gone
     youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
-        prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed], effects=ext_effects,
+        prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed],
         youngs_modulus=E_cur, e_fit=e_fit, unexcluded=unexcluded, say=say)
     # the claimed causes as refitted with E, their intervals holding their model-form worlds
     claimed = [(c, g, with_intervals(replace(rep, **fit_fields(c, g)) if g is not f else rep, c, g, worlds))

@@ -18,7 +18,7 @@ and the replay's own on the coarse grid, and carries each to the fine grid by th
 replay's own coarse-to-fine change (E by its ratio, every other variable by its
 difference), as :func:`core.identification.model_form.youngs_model_form` carries E. A
 Gauss-Newton step from the replay's fit instead of these refits was tried and is not
-used: on seed 68 it missed the refits' E by 8-33 % and their stiffness by 10-24 %.
+used: on seed 68 it missed the refits' E by 8-33 % and their stiffness by 4-24 %.
 """
 
 from __future__ import annotations
@@ -32,6 +32,7 @@ import numpy as np
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.results import CauseReport
+from core.diagnosis.summary import identifiable
 from core.identification.model_form import COARSE, FINE, VARIANTS, ModelFormVariant
 from core.simulation.effects import FitSpace
 
@@ -131,6 +132,21 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
                       "coarse-to-fine change"}
 
 
+def _variable_intervals(space: FitSpace, fit: Fit, worlds: dict | None) -> list[tuple[list, list | None, list]]:
+    """Per fit variable, in its own units (log10 for ``log10_`` ones): (statistical
+    [lo, hi], the worlds' range or None, the hull of the statistical interval around the
+    fit and around each world's value)."""
+    values = [w["variables"][space.kind] for w in (worlds or {}).get("worlds", []) if space.kind in w["variables"]]
+    out = []
+    for j in range(len(space.names)):
+        v, se = float(fit.x[j]), float(fit.se[j])
+        half = 1.96 * se if math.isfinite(se) else math.inf
+        world = [w[j] for w in values]
+        out.append(([v - half, v + half], [min(world), max(world)] if world else None,
+                    [min([v - half] + [w - half for w in world]), max([v + half] + [w + half for w in world])]))
+    return out
+
+
 def parameter_intervals(space: FitSpace, fit: Fit, worlds: dict | None) -> dict:
     """95 % intervals of a claimed cause's fit variables: statistical, model-form and both.
 
@@ -145,37 +161,22 @@ def parameter_intervals(space: FitSpace, fit: Fit, worlds: dict | None) -> dict:
         statistical one and each world's value widened by it.
     """
     out = {}
-    values = [w["variables"][space.kind] for w in (worlds or {}).get("worlds", []) if space.kind in w["variables"]]
-    for j, (name, unit) in enumerate(zip(space.names, space.units)):
-        v, se = float(fit.x[j]), float(fit.se[j])
-        half = 1.96 * se if math.isfinite(se) else math.inf
-        stat = [v - half, v + half]
-        world = [w[j] for w in values]
-        mf = [min(world), max(world)] if world else None
-        both = [min([stat[0]] + [w - half for w in world]), max([stat[1]] + [w + half for w in world])]
+    for name, unit, (stat, mf, both) in zip(space.names, space.units, _variable_intervals(space, fit, worlds)):
         tr, key = (lambda a: 10.0 ** a, name[6:]) if name.startswith("log10_") else (lambda a: a, name)
 
         def si(iv):
-            return None if iv is None else [float(tr(iv[0])) if math.isfinite(iv[0]) else None,
-                                            float(tr(iv[1])) if math.isfinite(iv[1]) else None]
+            return None if iv is None else [float(tr(a)) if math.isfinite(a) else None for a in iv]
         out[key] = {"unit": unit, "statistical": si(stat), "model_form": si(mf), "interval": si(both)}
     return out
 
 
 def with_intervals(report: CauseReport, space: FitSpace, fit: Fit, worlds: dict | None) -> CauseReport:
     """``report`` with its ``intervals`` (:func:`parameter_intervals`) and ``identifiable``
-    judged on them: a variable is identifiable when its interval, model form included, is
-    narrower than a decade (``log10_`` variables) or than its value (others), the rule of
-    :func:`core.diagnosis.summary.identifiable` on the statistical interval alone."""
-    iv = parameter_intervals(space, fit, worlds)
+    judged on them by :func:`core.diagnosis.summary.identifiable`'s rule (narrower than a
+    decade for ``log10_`` variables, than the value for others), applied to the interval
+    that holds the model form."""
+    widths = np.array([(both[1] - both[0]) / (2 * 1.96) for _, _, both in _variable_intervals(space, fit, worlds)])
+    n = len(space.names)
     ident = dict(report.identifiable)
-    for j, name in enumerate(space.names):
-        key = name[6:] if name.startswith("log10_") else name
-        lo, hi = iv[key]["interval"]
-        if lo is None or hi is None:
-            ident[key] = False
-        elif name.startswith("log10_"):
-            ident[key] = bool(lo > 0 and math.log10(hi) - math.log10(lo) < 1.0)
-        else:
-            ident[key] = bool(0.5 * (hi - lo) < 0.5 * max(abs(float(fit.x[j])), 1e-12))
-    return replace(report, intervals=iv, identifiable=ident)
+    ident.update(identifiable(space.names, np.asarray(fit.x[:n]), widths))
+    return replace(report, intervals=parameter_intervals(space, fit, worlds), identifiable=ident)

@@ -211,7 +211,7 @@ def gravity_at_reported_youngs(g, youngs: dict | None) -> float | None:
 
 
 def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisConfig, executor, *,
-                       joint: bool, claimed: Sequence[tuple[FitSpace, Fit]], effects: list[dict], youngs_modulus: float,
+                       joint: bool, claimed: Sequence[tuple[FitSpace, Fit]], youngs_modulus: float,
                        e_fit: Fit | None, unexcluded: Sequence[tuple[str, dict, str]] = (),
                        say: Callable[[float, str], None] = lambda p, m: None
                        ) -> tuple[dict, float, list[dict], list[tuple[FitSpace, Fit]], dict | None]:
@@ -231,8 +231,7 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
 
     Args:
         executor: the diagnosis's :class:`~core.identification.execution.Executor`.
-        claimed: ``[(fit space, fit)]`` of the claimed causes (their last fits, with Jacobians).
-        effects: the claimed causes' effect dicts (fitted on the fine grid).
+        claimed: ``[(fit space, fit)]`` of the claimed causes (their last fits, on the fine grid).
         youngs_modulus: the model's current E (Pa, coarse grid).
         unexcluded: ``[(kind, effect dict, basis)]`` of :func:`unexcluded_effects`.
 
@@ -243,6 +242,7 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
         :func:`~core.diagnosis.worlds.claimed_worlds` or None).
     """
     E_ext, worlds, claimed = youngs_modulus, None, list(claimed)
+    effects = [e for _, f in claimed for e in f.effects]
     if joint:
         if claimed and cfg.joint_refit_iterations > 0:
             say(0.88, "refitting the claimed causes with Young's modulus")
