@@ -13,6 +13,7 @@ spirit of Kennedy & O'Hagan 2001).
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass, fields as dataclass_fields, replace
 from typing import NamedTuple, Sequence
 
@@ -289,6 +290,9 @@ class Evidence:
     def __init__(self, prepared: PreparedSession, cfg: DiagnosisConfig, executor: Executor, layout: FieldLayout):
         self.prepared, self.cfg, self.executor, self.layout = prepared, cfg, executor, layout
         self.cache = LruCache(RUNS_CACHE_BYTES, _run_bytes)
+        self._lock = threading.Lock()
+        """Guards the cache and the counters: :meth:`runs_together` may be called from
+        several threads at once (independent fits side by side on a concurrent executor)."""
         self.delta: dict[str, np.ndarray] = {}
         self.force_delta: dict[str, np.ndarray] = {}
         self.force_ratio: dict[str, float] = {}
@@ -379,42 +383,44 @@ class Evidence:
         """
         todo, keys, found = [], [], {}
         plans = []
-        for req in requests:
-            names = self.names[req.role]
-            grid = tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid else tuple(self.cfg.grid)
-            if req.jacobian:
-                items = [(Spec(d.effects(d.theta), d.youngs(d.theta), law=d.law, poisson_ratio=d.poisson_ratio,
-                               stiffening=d.stiffening, simulation=d.simulation), d) for d in req.models]
-            else:
-                items = [(m if isinstance(m, Spec) else self.spec(m), None) for m in req.models]
-            rows = []
-            for m, d in items:
-                row = []
-                for n in names:
-                    k = self._key(m, n, req.paper, grid)
-                    if d is not None:
-                        k = k + ("jacobian", None if d.space is None else d.space.kind, d.fit_youngs)
-                    row.append(k)
-                    if k in found or k in keys:
-                        continue
-                    hit = self.cache.get_recent(k)
-                    if hit is not None:
-                        found[k] = hit
-                    else:
-                        self.repeated += k in self.cache.dropped
-                        keys.append(k)
-                        todo.append(FieldTrial(self.trial(n, m, grid), self.layout, req.paper, d))
-                rows.append(row)
-            plans.append(rows)
+        with self._lock:  # the map itself runs unlocked: other threads' runs go beside it
+            for req in requests:
+                names = self.names[req.role]
+                grid = tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid else tuple(self.cfg.grid)
+                if req.jacobian:
+                    items = [(Spec(d.effects(d.theta), d.youngs(d.theta), law=d.law, poisson_ratio=d.poisson_ratio,
+                                   stiffening=d.stiffening, simulation=d.simulation), d) for d in req.models]
+                else:
+                    items = [(m if isinstance(m, Spec) else self.spec(m), None) for m in req.models]
+                rows = []
+                for m, d in items:
+                    row = []
+                    for n in names:
+                        k = self._key(m, n, req.paper, grid)
+                        if d is not None:
+                            k = k + ("jacobian", None if d.space is None else d.space.kind, d.fit_youngs)
+                        row.append(k)
+                        if k in found or k in keys:
+                            continue
+                        hit = self.cache.get_recent(k)
+                        if hit is not None:
+                            found[k] = hit
+                        else:
+                            self.repeated += k in self.cache.dropped
+                            keys.append(k)
+                            todo.append(FieldTrial(self.trial(n, m, grid), self.layout, req.paper, d))
+                    rows.append(row)
+                plans.append(rows)
         if todo:
             out = self.executor.map(run_field, self.prepared, todo)
-            self.simulations += len(todo)
-            for k, r, item in zip(keys, out, todo):
-                found[k] = r
-                self.cache.put(k, r)
-                if item.directions is not None and k[:-3] not in self.cache:
-                    # the run itself answers plain requests too
-                    self.cache.put(k[:-3], replace(r, jac_field=None, jac_force=None, d_youngs=None, d_offset=None))
+            with self._lock:
+                self.simulations += len(todo)
+                for k, r, item in zip(keys, out, todo):
+                    found[k] = r
+                    self.cache.put(k, r)
+                    if item.directions is not None and k[:-3] not in self.cache:
+                        # the run itself answers plain requests too
+                        self.cache.put(k[:-3], replace(r, jac_field=None, jac_force=None, d_youngs=None, d_offset=None))
         return [[[found[k] for k in row] for row in rows] for rows in plans]
 
     def jacobian(self, runs: list[FieldRun], shifted: bool = True) -> np.ndarray:

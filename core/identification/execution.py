@@ -19,6 +19,10 @@ Progress = Callable[[int, int], None]
 class Executor:
     """Runs ``fn(shared, item)`` for every item, in order of the items."""
 
+    concurrent: bool = False
+    """Whether ``map`` may be called from several threads at once and then runs their
+    items side by side (Dask's client is thread-safe; the serial executor gains nothing)."""
+
     def map(self, fn: Callable[[Any, Any], Any], shared: Any, items: Sequence[Any], progress: Progress | None = None) -> list:
         raise NotImplementedError
 
@@ -53,8 +57,11 @@ class DaskExecutor(Executor):
 
     The shared object is scattered to every worker once (broadcast); trials are
     submitted in order and gathered in order, so the result list is independent of
-    scheduling.
+    scheduling. ``map`` may be called from several threads at once (``concurrent``): the
+    client is thread-safe and the workers interleave the calls' trials.
     """
+
+    concurrent = True
 
     def __init__(self, client):
         self.client = client
