@@ -78,11 +78,10 @@ class DiagnosisConfig:
             this (a fraction of one unit of chi2 cannot change a claim).
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
             claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
-            step from the coarse fit (with force data, from their coarse refit with E).
+            step from the coarse fit.
         joint_refit_iterations: with force data, Levenberg-Marquardt iterations of the
-            claimed causes' refit with E on the coarse grid (each cause with E in turn),
-            followed by ``fine_refit_iterations`` on ``fine_grid``
-            (:func:`core.diagnosis.worlds.final_refits`; 0: E alone beside them, one iteration).
+            claimed causes' refit with E on ``fine_grid`` (each cause with E in turn;
+            :func:`core.diagnosis.worlds.refit_jointly`; 0: E alone beside them, one iteration).
         world_refit_iterations: iterations of that refit in each model-form world on the
             coarse grid (:func:`core.diagnosis.worlds.claimed_worlds`; 0: no worlds).
         max_causes: most causes claimed.

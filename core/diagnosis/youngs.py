@@ -20,7 +20,7 @@ import numpy as np
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.worlds import claimed_worlds
+from core.diagnosis.worlds import claimed_worlds, refit_jointly
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import force_youngs, youngs_model_form
 from core.identification.trials import Trial
@@ -213,13 +213,13 @@ def gravity_at_reported_youngs(g, youngs: dict | None) -> float | None:
 def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisConfig, executor, *,
                        joint: bool, claimed: Sequence[tuple[FitSpace, Fit]], youngs_modulus: float,
                        e_fit: Fit | None, unexcluded: Sequence[tuple[str, dict, str]] = (),
-                       refitted: bool = False, say: Callable[[float, str], None] = lambda p, m: None
+                       say: Callable[[float, str], None] = lambda p, m: None
                        ) -> tuple[dict, float, list[dict], list[tuple[FitSpace, Fit]], dict | None]:
     """Young's modulus of the extended model: diagnosis.json's ``youngs_modulus``.
 
-    With force data (``joint``), E is the claimed causes' refit with it on the fine grid
-    (``refitted``: :func:`core.diagnosis.worlds.final_refits`, as they trade along the
-    force; without claimed causes ``e_fit``, the last round's fit, stands), under the
+    With force data (``joint``), E is refitted with the claimed causes on the fine grid
+    (:func:`core.diagnosis.worlds.refit_jointly`: the causes with it, as they trade along
+    the force; when a cause was ``claimed``; else ``e_fit``, the last round's fit, stands), under the
     model-form variants, beside each unclaimed cause the held-out data leaned towards
     (``unexcluded``, :func:`unexcluded_effects`; :func:`unexcluded_youngs`) and, with the
     claimed causes refitted with it, in each model-form world
@@ -234,9 +234,6 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
         claimed: ``[(fit space, fit)]`` of the claimed causes (their last fits, on the fine grid).
         youngs_modulus: the model's current E (Pa, coarse grid).
         unexcluded: ``[(kind, effect dict, basis)]`` of :func:`unexcluded_effects`.
-        refitted: ``claimed`` were refitted with E (:func:`core.diagnosis.worlds.final_refits`)
-            and ``e_fit`` is that refit's; otherwise (``joint_refit_iterations`` 0) E is
-            refitted alone beside them.
 
     Returns:
         (the ``youngs_modulus`` dict with ``replay_grid_value_used``, the E the test stage
@@ -247,7 +244,12 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
     E_ext, worlds, claimed = youngs_modulus, None, list(claimed)
     effects = [e for _, f in claimed for e in f.effects]
     if joint:
-        if claimed and not refitted:  # joint_refit_iterations 0: E alone beside the causes
+        if claimed and cfg.joint_refit_iterations > 0:
+            say(0.88, "refitting the claimed causes with Young's modulus")
+            claimed, e_fit = refit_jointly(ev, claimed, youngs_modulus, fine=bool(cfg.fine_grid),
+                                           iterations=cfg.joint_refit_iterations)
+            effects = [e for _, f in claimed for e in f.effects]
+        elif claimed:
             e_fit = fit_candidate(ev, None, effects, E=youngs_modulus, fit_youngs=True, fine=bool(cfg.fine_grid),
                                   iterations=max(cfg.fine_refit_iterations, 1))
         E_ext = e_fit.youngs_modulus

@@ -13,7 +13,7 @@ from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport
-from core.diagnosis.worlds import claimed_worlds, final_refits, parameter_intervals, refit_jointly, with_intervals
+from core.diagnosis.worlds import claimed_worlds, parameter_intervals, refit_jointly, with_intervals
 from core.identification.execution import SerialExecutor
 from core.identification.model_form import VARIANTS, force_youngs
 from core.lab import generate_session
@@ -64,26 +64,6 @@ def test_a_base_claimed_at_the_wrong_e_is_refitted_with_it_and_its_worlds_hold_t
     f_stat = 10.0 ** (1.96 * g.se[-1])
     E_w = [w["youngs_modulus"] for w in worlds["worlds"]]
     assert min(E_w) / f_stat <= E_lab <= max(E_w) * f_stat
-
-
-def test_the_diagnosis_final_refit_on_the_coarse_grid_then_the_fine_one_recovers_base_and_e(soft_base):
-    """The diagnosis's own path (:func:`final_refits` with force data): the base and E
-    refitted together on the coarse grid with the discrepancy shift, then one exact step on
-    the fine grid, from the base fitted on the coarse grid at the force-only E (measured:
-    35.1 kPa/m there; after the refit 44.4 kPa/m and 5947 Pa for 50 kPa/m and 5000 Pa; three
-    fine iterations give 47.6 kPa/m, the test above)."""
-    prepared, ev, E_lab = soft_base
-    assert ev.discrepancy(("train",)) == []  # the coarse-to-fine shift the coarse refit uses
-    space = candidates(prepared.size, prepared.probe_radius)["base_compliance"]
-    E0 = force_youngs(prepared, [[]], 5000.0)[0]
-    f = fit_candidate(ev, space, [], E=E0)
-    (c, g), = (out := final_refits(ev, [(space, f)], E0, joint=True))[0]
-    assert out[1] is g and g.x.size == 2
-    assert 10.0 ** g.x[0] == pytest.approx(STIFFNESS, rel=0.15)
-    assert g.youngs_modulus == pytest.approx(E_lab, rel=0.25)
-    # without force data it is one fine step at the given E, and no joint fit
-    h, none = final_refits(ev, [(space, f)], E0, joint=False)
-    assert none is None and h[0][1].x.size == 1
 
 
 def _fit(x, se, effect=None):
