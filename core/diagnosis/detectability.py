@@ -26,7 +26,7 @@ from core.diagnosis.results import Detectability
 from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_dict
 
 if TYPE_CHECKING:  # the engine's round: its model, nuisances, held-out test and residuals
-    from core.diagnosis.engine import _Round as Round
+    from core.diagnosis.rounds import Round
 
 __all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "withdraw_undersized", "UNDERSIZED"]
 

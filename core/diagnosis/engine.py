@@ -56,7 +56,7 @@ from __future__ import annotations
 import gc
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Callable
 
 import numpy as np
@@ -64,17 +64,16 @@ import numpy as np
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability, unobservable, withdraw_undersized
-from core.diagnosis.evidence import Directions, Evidence, FieldRun, Request, Spec, drop_binned_points
+from core.diagnosis.evidence import Evidence, Request, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import (HeldOutTest, channel_worsening, claim_check, holm, holm_adjusted,
-                                       reproduction)
-from core.diagnosis.nuisance import Nuisance, model_form_drops
+from core.diagnosis.inference import claim_check, holm, holm_adjusted
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
+from core.diagnosis.rounds import CandidateEvidence, Round, assess_all, channel_masks, model_form_json
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
-from core.diagnosis.worlds import with_intervals
+from core.diagnosis.worlds import absence_within, with_intervals
 from core.diagnosis.youngs import unexcluded_effects, with_untold_kinds, youngs_of_extended
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
@@ -85,212 +84,6 @@ from core.simulation.replay import noise_floor
 __all__ = ["DiagnosisConfig", "CauseReport", "Detectability", "Diagnosis", "diagnose_prepared", "detectability"]
 
 Callback = Callable[[float, str], None]
-
-
-@dataclass
-class _Round:
-    """The model of a selection round and its held-out test."""
-
-    fixed: list
-    youngs_modulus: float
-    nuisance: Nuisance
-    test: HeldOutTest
-    train: list          # FieldRun of the round's model on train
-    validation: list     # ... on validation
-    r_train: np.ndarray  # its residual vectors
-    r_validation: np.ndarray
-    chi2: float          # its held-out validation chi2
-    _model_form: dict | None = None
-
-    def model_form(self, ev: Evidence) -> tuple[str, float]:
-        """(variant, T): the model-form variant at an end of its plausible range with the
-        largest held-out drop on this round's model (:func:`core.diagnosis.nuisance.model_form_drops`),
-        ("", 0.0) when none lowers it. Simulated once per round, when first asked."""
-        if self._model_form is None:
-            self._model_form = model_form_drops(ev, self.fixed, self.youngs_modulus, self.nuisance,
-                                                self.r_train, self.r_validation)
-        best = max(self._model_form.items(), key=lambda kv: kv[1], default=("", 0.0))
-        return best if best[1] > 0 else ("", 0.0)
-
-    @classmethod
-    def build(cls, ev: Evidence, fixed: list, E: float, cfg: DiagnosisConfig, seed: int) -> "_Round":
-        nuis = Nuisance.build(ev, fixed, E, cfg.nuisances)
-        spec = Spec(tuple(fixed), float(E))
-        tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
-        r_t, r_v = ev.vector(tr), ev.vector(va)
-        e_t, e_v = nuis.project(r_t), nuis.held_out(r_v, r_t)
-        test = HeldOutTest(nuis.active(r_t), e_t, e_v, ev.blocks("train"), ev.blocks("validation"), ev.sigma2,
-                           replicates=cfg.n_null, seed=seed)
-        return cls(list(fixed), float(E), nuis, test, tr, va, r_t, r_v, float(e_v @ e_v) / ev.sigma2)
-
-
-@dataclass
-class _Evidence:
-    """One candidate's fit and held-out evidence in a round."""
-
-    fit: Fit
-    validation: list     # FieldRun of the round's model plus the candidate on validation
-    statistic: float     # T, chi2 units
-    by_channel: tuple    # (field, force or None)
-    null: np.ndarray
-    p_value: float
-    critical: float
-    channels: dict       # channel_worsening of the held-out residual, per channel
-    reproduction: dict   # inference.reproduction: the drop against the fitted change's own worth
-
-
-def _channel_masks(ev: Evidence, role: str) -> dict[str, np.ndarray]:
-    """{channel: (L,) bool} over a residual vector of ``role``: the top face's bins
-    ("top"), the side faces' bins ("sides", when the layout has them) and the force
-    ("force", with force data)."""
-    side_of_bin = ev.layout.face_of_bin() > 0
-    top, side, force = [], [], []
-    B = ev.layout.n_bins
-    for n in ev.names[role]:
-        F = ev.prepared.sequences[n].frame_times.size
-        s = np.tile(side_of_bin, F)
-        top.append(~s), side.append(s), force.append(np.zeros(F * B, dtype=bool))
-        if ev.use_force:
-            z = np.zeros(F * 3, dtype=bool)
-            top.append(z), side.append(z), force.append(np.ones(F * 3, dtype=bool))
-    out = {"top": np.concatenate(top), "sides": np.concatenate(side), "force": np.concatenate(force)}
-    return {k: v for k, v in out.items() if v.any()}
-
-
-TANGENT_BLOWUP = 1e4
-"""A signature column whose RMS per residual on validation exceeds this many times its RMS on
-train is no local signature: train and validation palpate the same phantom with the same
-probe. Measured: a compliant base's exact sensitivity on the validation sequence of field
-seed 51 (4 x 12 s, a side poke) came out 1.3e19 against 70 on train (the forward runs
-finite), and the null built from it put the kind's critical value at 2.6e35, so it could
-neither be claimed nor bounded. The replay there is not smooth in the parameter: on that
-soft base (log10 k = 5, about 270 N/m in every direction under the whole phantom) the held
-side press makes the contact force chatter from frame to frame, and central differences of
-it grow as 1/h (a jump of ~1 N)."""
-
-
-def _trusted_columns(J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
-    """(p,) bool: the columns of the train and validation signatures ``J_t`` (L_t, p), ``J_v``
-    (L_v, p) that carry a signature: finite on both, and not blown up on validation
-    (:data:`TANGENT_BLOWUP`). The others are dropped from the null, as a run that diverged."""
-    finite = np.all(np.isfinite(J_t), axis=0) & np.all(np.isfinite(J_v), axis=0)
-    with np.errstate(over="ignore", invalid="ignore"):  # a NaN or an overflow compares False
-        rms_t = np.sqrt(np.mean(J_t**2, axis=0))
-        rms_v = np.sqrt(np.mean(J_v**2, axis=0))
-    return finite & (rms_v <= TANGENT_BLOWUP * rms_t)
-
-
-def _validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: np.ndarray,
-                         r_v: np.ndarray, runs: list[FieldRun] | None) -> np.ndarray | None:
-    """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity (``runs``,
-    the validation runs of :func:`_held_out_requests`' jacobian request), or with
-    ``cfg.sensitivities`` False a forward difference."""
-    if ev.cfg.sensitivities:
-        J = ev.jacobian(runs)
-        return J if np.all(np.isfinite(J)) else None
-    pts = []
-    for j, h in enumerate(cand.steps):
-        xj = x.copy()
-        xj[j] = x[j] + h if x[j] + h <= cand.upper[j] else x[j] - h
-        pts.append(cand.clip(xj))
-    runs = ev.runs([Spec(tuple(fixed) + (cand.to_effect(p),), E) for p in pts], "validation")
-    cols = []
-    for p, r, j in zip(pts, runs, range(len(pts))):
-        d = p[j] - x[j]
-        if d == 0:
-            return None
-        cols.append((ev.vector(r) - r_v) / d)
-    J = np.stack(cols, axis=1)
-    return J if np.all(np.isfinite(J)) else None
-
-
-def _held_out_requests(ev: Evidence, cand: FitSpace, rnd: _Round, fit: Fit) -> list[Request]:
-    """The runs :func:`_judge` needs of a fit: the round's model plus the fitted cause on
-    train and validation, and with exact sensitivities its validation signature."""
-    spec = Spec(tuple(rnd.fixed) + tuple(fit.effects), rnd.youngs_modulus)
-    reqs = [Request([spec], "train"), Request([spec], "validation")]
-    if fit.jacobian is not None and ev.cfg.sensitivities:
-        d = Directions(tuple(rnd.fixed), cand, fit.x[: len(cand.names)], rnd.youngs_modulus)
-        reqs.append(Request([d], "validation", jacobian=True))
-    return reqs
-
-
-def _assess_all(ev: Evidence, cands: dict[str, FitSpace], rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
-                channels: dict[str, np.ndarray], starts: dict[str, np.ndarray | None] | None = None,
-                progress: Callable[[int, str], None] | None = None) -> dict[str, _Evidence]:
-    """Fit every kind of ``cands`` on train beside the round's nuisances (from ``starts[kind]``
-    when given, else from the kind's starts; its look-elsewhere factor is the kind's declared
-    ``searches`` either way), then judge each on validation (:func:`_judge`). The fits run
-    one after another; their held-out runs (a validation sequence each, one worker's work
-    when asked alone) all go through one executor map."""
-    starts = starts or {}
-    fits = {}
-    for i, (kind, cand) in enumerate(cands.items()):
-        if progress is not None:
-            progress(i, kind)
-        fits[kind] = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance,
-                                   start=starts.get(kind))
-    reqs = {kind: _held_out_requests(ev, cand, rnd, fits[kind]) for kind, cand in cands.items()}
-    flat = ev.runs_together([r for rs in reqs.values() for r in rs])
-    out, at = {}, 0
-    for kind, cand in cands.items():
-        got = [runs[0] for runs in flat[at: at + len(reqs[kind])]]
-        at += len(reqs[kind])
-        out[kind] = _judge(ev, cand, rnd, cfg, n_kinds, channels, fits[kind], got[0], got[1],
-                           got[2] if len(got) > 2 else None)
-    return out
-
-
-def _judge(ev: Evidence, cand: FitSpace, rnd: _Round, cfg: DiagnosisConfig, n_kinds: int,
-           channels: dict[str, np.ndarray], fit: Fit, tr: list[FieldRun], va: list[FieldRun],
-           jac_v: list[FieldRun] | None) -> _Evidence:
-    """A candidate's held-out evidence from its fit and the runs of :func:`_held_out_requests`
-    (``tr``, ``va``: the fitted model on train and validation; ``jac_v``: its validation
-    signature runs, or None); ``channels``: :func:`_channel_masks` of the validation vector."""
-    r_t, r_v = ev.vector(tr), ev.vector(va)
-    h = rnd.nuisance.held_out(r_v, r_t)
-    e_v = rnd.nuisance.held_out(rnd.r_validation, rnd.r_train)
-    if not np.all(np.isfinite(h)):
-        return _Evidence(fit, va, -math.inf, (-math.inf, None), np.zeros(1), 1.0, math.inf, {}, {})
-    d = (e_v**2 - h**2) / ev.sigma2
-    T = float(d.sum())
-    force = channels.get("force", np.zeros(d.size, dtype=bool))
-    chans = (float(d[~force].sum()), float(d[force].sum()) if ev.use_force else None)
-    # the null's signature: the fit's local Jacobian and the secant of the change it made
-    # (where the local signature on validation vanishes, the secant still carries the
-    # change; a null without it let a fit far from linear pass with any held-out drop)
-    cols_t, cols_v = [r_t - rnd.r_train], [r_v - rnd.r_validation]
-    if fit.jacobian is not None:
-        J_v = _validation_jacobian(ev, cand, rnd.fixed, rnd.youngs_modulus, fit.x[: len(cand.names)], r_v, jac_v)
-        if J_v is not None:
-            cols_t, cols_v = list(fit.jacobian[:, : len(cand.names)].T) + cols_t, list(J_v.T) + cols_v
-    J_t, J_v = np.stack(cols_t, axis=1), np.stack(cols_v, axis=1)
-    # a direction whose run diverged (a fit's last train Jacobian at a far-off parameter),
-    # or whose tangent blew up on validation, carries no signature: the null is built from
-    # the others (a NaN in it failed the SVD of the whole diagnosis on a dome)
-    finite = _trusted_columns(J_t, J_v)
-    J_t, J_v = np.where(finite[None], J_t, 0.0), np.where(finite[None], J_v, 0.0)
-    keep = finite & (np.linalg.norm(J_t, axis=0) > 0)
-    if not np.any(keep):
-        null, p = np.zeros(1), 1.0
-    else:
-        null = rnd.test.null(J_t[:, keep], J_v[:, keep])
-        # a cause must improve held-out data: the null of a many-parameter fit sits below
-        # zero (fitting noise on train costs on validation), and a fit that made
-        # validation worse, but less than noise would, is no evidence for the kind
-        p = rnd.test.p_value(T, null, cand.searches) if T > 0 else 1.0
-    crit = rnd.test.critical(null, cfg.alpha / max(n_kinds * cand.searches, 1))
-    blocks = rnd.test.blocks_validation
-    worse = channel_worsening(e_v, h, channels, blocks, cfg.consistency_alpha, ev.sigma2) if cfg.consistency_alpha > 0 else {}
-    return _Evidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
-
-
-def _model_form_json(rnd: _Round | None, ev: Evidence) -> dict | None:
-    """diagnosis.json ``model_form``: the last round's drops and bar, when they were simulated."""
-    if rnd is None or rnd._model_form is None:
-        return None
-    variant, bar = rnd.model_form(ev)
-    return {"drops": {k: float(v) for k, v in rnd._model_form.items()}, "variant": variant or None, "bar": float(bar)}
 
 
 def _floor_mesh(prepared: PreparedSession, cfg: DiagnosisConfig, ev: Evidence):
@@ -374,7 +167,7 @@ def diagnose_prepared(
     face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
     sigma2 = float(face_sigma2[0]) if dof[0] > 0 else float(ss.sum() / max(dof.sum(), 1))
     ev.weigh_faces(face_sigma2, sigma2)
-    channels_v = _channel_masks(ev, "validation")
+    channels_v = channel_masks(ev, "validation")
     palp = palpation(prepared, seen)
 
     E_base = cfg.youngs_modulus
@@ -395,8 +188,8 @@ def diagnose_prepared(
     refused: dict[str, str] = dict(blind)  # kinds significant but refused by channel_worsening, or blind: why
     small: dict[str, str] = {}  # kinds significant whose fitted change is below a claim: why
     active = [k for k in cands if k not in blind]
-    last: _Round | None = None
-    last_evidence: dict[str, _Evidence] = {}
+    last: Round | None = None
+    last_evidence: dict[str, CandidateEvidence] = {}
     last_fits: dict[str, Fit] = {}
     for rnd_i in range(cfg.max_causes + 1):
         if joint and rnd_i > 0:
@@ -405,13 +198,13 @@ def diagnose_prepared(
             e_fit = fit_candidate(ev, None, fixed, E=E_cur, fit_youngs=True)
             E_cur = e_fit.youngs_modulus
         say(0.05 + 0.6 * rnd_i / (cfg.max_causes + 1), f"round {rnd_i}: the model's nuisances and null")
-        rnd = _Round.build(ev, fixed, E_cur, cfg, cfg.seed + rnd_i)
+        rnd = Round.build(ev, fixed, E_cur, cfg, cfg.seed + rnd_i)
         last, last_evidence = rnd, {}
         if rnd_i == cfg.max_causes or not active:
             break
         # a later round starts each kind from its fit of the round before (the model
         # gained a cause; the kind's optimum moves, its basin rarely does)
-        evid = _assess_all(
+        evid = assess_all(
             ev, {k: cands[k] for k in active}, rnd, cfg, len(active), channels_v,
             starts={k: f.x[: len(cands[k].names)] for k, f in last_fits.items()},
             progress=lambda i, kind: say(0.05 + 0.6 * (rnd_i + (i + 1) / (len(active) + 1)) / (cfg.max_causes + 1),
@@ -461,8 +254,8 @@ def diagnose_prepared(
 
         def adds(kind: str, given: str) -> bool:
             g = evid[given].fit
-            sub = _Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
-            e = _assess_all(ev, {kind: cands[kind]}, sub, cfg, len(active), channels_v)[kind]
+            sub = Round.build(ev, fixed + g.effects, E_cur, cfg, cfg.seed + 100 + rnd_i)
+            e = assess_all(ev, {kind: cands[kind]}, sub, cfg, len(active), channels_v)[kind]
             return e.p_value <= cfg.alpha / max(len(active), 1)
 
         best, group = choose(sorted(significant), [k for k in rejected if k in small],
@@ -514,15 +307,30 @@ def diagnose_prepared(
             e_fit = e_fit if claimed else base_fit
 
     # E with the claimed causes, under the model-form variants and beside the unclaimed
-    # causes the held-out data leaned towards (core.diagnosis.youngs)
-    unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
-                                    [c.kind for c, _, _ in claimed]) + gone
-    youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
-        prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed],
-        youngs_modulus=E_cur, e_fit=e_fit, unexcluded=unexcluded, say=say)
-    # the claimed causes as refitted with E, their intervals holding their model-form worlds
-    claimed = [(c, g, with_intervals(replace(rep, **fit_fields(c, g)) if g is not f else rep, c, g, worlds))
-               for (c, f, rep), (_, g) in zip(claimed, refits)]
+    # causes the held-out data leaned towards (core.diagnosis.youngs); a claim that,
+    # refitted in the model-form worlds, cannot be told from no effect
+    # (worlds.absence_within) is withdrawn, and E is fitted again without it
+    while True:
+        unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
+                                        [c.kind for c, _, _ in claimed]) + gone
+        youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
+            prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed],
+            youngs_modulus=E_cur, e_fit=e_fit, unexcluded=unexcluded, say=say)
+        # the claimed causes as refitted with E, their intervals holding their model-form worlds
+        claimed = [(c, g, with_intervals(replace(rep, **fit_fields(c, g)) if g is not f else rep, c, g, worlds))
+                   for (c, f, rep), (_, g) in zip(claimed, refits)]
+        gap = {c.kind: why for c, g, _ in claimed if (why := absence_within(c, g, worlds))}
+        if not gap:
+            break
+        notes += [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in gap.items()]
+        reports = [replace(r, claimed=False) if r.kind in gap else r for r in reports]
+        if det:
+            det = {k: Detectability(k, None, dict(d.parameters), f"cannot tell from this data: a claim of it was {gap[k]}", "cannot_tell", d.unit)
+                   if k in gap else d for k, d in det.items()}
+        gone += [(c.kind, g.effect, "claimed, then withdrawn: no effect within its model-form interval")
+                 for c, g, _ in claimed if c.kind in gap]
+        claimed = [t for t in claimed if t[0].kind not in gap]
+        e_fit = e_fit if claimed else base_fit
     if det:
         youngs = with_untold_kinds(youngs, {k: d.answer for k, d in det.items()})
     lap("youngs")
@@ -543,7 +351,7 @@ def diagnose_prepared(
     # what the report needs of the selection rounds, kept; the rounds' nuisances, nulls and
     # runs freed, and the workers' binned train and validation points with them
     nuisance_names = tuple(dict.fromkeys(last.nuisance.names)) if last else ()
-    model_form = _model_form_json(last, ev)
+    model_form = model_form_json(last, ev)
     last = rnd = last_evidence = last_fits = base_fit = e_fit = noise_runs = base = None
     evid = {}
     gc.collect()

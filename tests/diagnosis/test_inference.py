@@ -328,11 +328,11 @@ def test_probe_radius_from_top_presses_without_force_is_not_fitted_and_cannot_be
 
 
 def test_a_signature_column_that_blew_up_on_validation_is_dropped_from_the_null():
-    """engine._trusted_columns: a column finite on both roles and of comparable size is kept
+    """rounds.trusted_columns: a column finite on both roles and of comparable size is kept
     (validation ten times larger, or far smaller: palpation differs); one non-finite, or
     1e19 on validation against 70 on train (measured on field seed 51, where the replay
     chatters in a held side press on a very soft base), is dropped."""
-    from core.diagnosis.engine import TANGENT_BLOWUP, _trusted_columns
+    from core.diagnosis.rounds import TANGENT_BLOWUP, trusted_columns as _trusted_columns
 
     rng = np.random.default_rng(5)
     J_t = rng.normal(size=(200, 5))

@@ -13,7 +13,7 @@ from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport
-from core.diagnosis.worlds import claimed_worlds, parameter_intervals, refit_jointly, with_intervals
+from core.diagnosis.worlds import absence_within, claimed_worlds, parameter_intervals, refit_jointly, with_intervals
 from core.identification.execution import SerialExecutor
 from core.identification.model_form import VARIANTS, force_youngs
 from core.lab import generate_session
@@ -64,6 +64,8 @@ def test_a_base_claimed_at_the_wrong_e_is_refitted_with_it_and_its_worlds_hold_t
     f_stat = 10.0 ** (1.96 * g.se[-1])
     E_w = [w["youngs_modulus"] for w in worlds["worlds"]]
     assert min(E_w) / f_stat <= E_lab <= max(E_w) * f_stat
+    # a true base survives the model-form gap: no world refits it to no base
+    assert absence_within(space, g, worlds) is None
 
 
 def _fit(x, se, effect=None):
@@ -114,3 +116,53 @@ def test_a_claim_far_below_its_own_detectability_is_withdrawn():
     edge = {"gravity": {"kind": "gravity", "g": [0.0, 0.0, -g]}}
     assert undersized_claims(edge, {"gravity": det("gravity", 0.99 * g / UNDERSIZED)}, None) == {}
     assert set(undersized_claims(edge, {"gravity": det("gravity", 1.01 * g / UNDERSIZED)}, None)) == {"gravity"}
+
+
+def test_every_kind_declares_where_it_vanishes():
+    """Each kind's fit space names, in its own variables, the values without the effect:
+    within its bounds or a step beyond them, or infinite (vanishing past a bound)."""
+    from core.simulation.effects import EFFECT_KINDS, PhantomContext
+
+    ctx = PhantomContext(size=(0.08, 0.04, 0.04), probe_radius=0.005)
+    for kind, cls in EFFECT_KINDS.items():
+        space = cls.fit_space(ctx)
+        assert space.absent, kind
+        for name, value in space.absent:
+            j = space.names.index(name)
+            # at a bound or within a step of it (friction's mu 0, a step under its 0.01)
+            assert math.isinf(value) or space.lower[j] - space.steps[j] <= value <= space.upper[j] + space.steps[j], \
+                (kind, name, value)
+
+
+def _worlds(kind, *xs):
+    return {"worlds": [{"variables": {kind: list(x)}} for x in xs]}
+
+
+def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
+    """No-effect field seed 1115 (force columns): an inclusion claimed at ratio 2.29 that the
+    model-form worlds refitted at ratios 0.41-31.6 (measured, two of the worlds shown) holds
+    no inclusion in its interval and is withdrawn; the true gravity of field seed 0, whose
+    worlds kept g_z at -8.6 to -21.2 m/s^2 while g_x changed sign, stands, and so does a
+    compliant base whose worlds stay below the bound."""
+    from core.diagnosis.candidates import candidates
+
+    spaces = candidates((0.08, 0.04, 0.04), 0.005)
+    inc = spaces["inclusion"]
+    fit = _fit([0.0374, 0.0316, 0.0277, 0.00766, math.log10(2.287), 4.0], [1e-4, 4e-4, 5e-4, 5e-4, 0.014, 0.01])
+    why = absence_within(inc, fit, _worlds("inclusion", [0.0032, 0.0271, 0.003, 0.003, 1.5],
+                                           [0.019, 0.0226, 0.019, 0.0167, -0.390]))
+    assert why is not None and "withdrawn" in why and "stiffness_ratio" in why
+    # the same claim with worlds that keep it stiff stands
+    assert absence_within(inc, fit, _worlds("inclusion", [0.035, 0.03, 0.027, 0.007, 0.3],
+                                            [0.036, 0.031, 0.028, 0.008, 1.1])) is None
+    assert absence_within(inc, fit, None) is None  # no worlds fitted: the held-out test alone judged it
+
+    grav = spaces["gravity"]
+    g = _fit([3.54, 0.68, -20.57, 4.0], [0.06, 0.02, 0.06, 0.01])
+    assert absence_within(grav, g, _worlds("gravity", [-2.88, 0.39, -8.59], [3.92, 1.56, -21.24])) is None
+    assert absence_within(grav, g, _worlds("gravity", [-2.88, -0.3, 0.5], [3.92, 1.56, -21.24])) is not None
+
+    base = spaces["base_compliance"]
+    b = _fit([4.74, 3.9], [0.001, 0.01])
+    assert absence_within(base, b, _worlds("base_compliance", [4.62], [4.79])) is None
+    assert absence_within(base, b, _worlds("base_compliance", [4.62], [8.0])) is not None  # as stiff as the bound

@@ -100,6 +100,12 @@ class FitSpace:
             constraints that couple variables (an inclusion's sphere inside the box).
         searches: how many effectively separate places the fit searches (an inclusion's
             starting locations): a claim's look-elsewhere factor.
+        absent: ``((name, value), ...)``: the variables' values without the effect (an
+            inclusion's ``log10_stiffness_ratio`` 0, a clock offset 0); ``inf`` or ``-inf``
+            where the effect vanishes beyond that variable's bound (a base's
+            ``log10_stiffness``). A claim whose 95 % interval over the model-form worlds
+            holds every one of them cannot be told from no effect
+            (:func:`core.diagnosis.worlds.absence_within`).
     """
 
     kind: str
@@ -113,6 +119,7 @@ class FitSpace:
     to_parameters: Callable[[np.ndarray], dict]
     project: Callable[[np.ndarray], np.ndarray] | None = None
     searches: int = 1
+    absent: tuple[tuple[str, float], ...] = ()
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """``x`` clipped to the bounds, then projected onto the feasible set, (n,) float64."""

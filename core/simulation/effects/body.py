@@ -56,7 +56,7 @@ class Gravity(Effect):
             _a(30.0, 30.0, 30.0), (_a(0.0, 0.0, -4.0),),
             lambda x: {"kind": "gravity", "g": [float(v) for v in x]},
             lambda x: {"g": [float(v) for v in x]},
-            project=_within_tilt,
+            project=_within_tilt, absent=(("g_x", 0.0), ("g_y", 0.0), ("g_z", 0.0)),
         )
 
     @classmethod
@@ -203,6 +203,7 @@ class Inclusion(Effect):
             ("m", "m", "m", "m", "-"), _a(0.002, 0.002, 0.002, 0.001, 0.1),
             _a(lo[0], lo[1], lo[2], 0.003, -1.0), _a(hi[0], hi[1], hi[2], 0.5 * float(np.min(hi - lo)), 1.5), starts,
             lambda x: {"kind": "inclusion", **params(x)}, params, inside, searches=len(starts),
+            absent=(("log10_stiffness_ratio", 0.0),),
         )
 
     @classmethod
@@ -288,6 +289,7 @@ class Viscoelasticity(Effect):
             "viscoelasticity", ("log10_relaxation_time", "log10_stiffness_ratio"), ("s", "-"), _a(0.1, 0.1),
             _a(math.log10(0.05), -1.5), _a(1.5, 1.5), tuple(_a(lt, 0.0) for lt in (-1.0, -0.5, 0.0, 0.5)),
             lambda x: {"kind": "viscoelasticity", **params(x)}, params,
+            absent=(("log10_stiffness_ratio", -math.inf),),
         )
 
     @classmethod
@@ -322,7 +324,8 @@ class Friction(Effect):
     @classmethod
     def fit_space(cls, ctx):
         return FitSpace("friction", ("mu",), ("-",), _a(0.1), _a(0.01), _a(2.0), (_a(0.3), _a(0.8)),
-                        lambda x: {"kind": "friction", "mu": float(x[0])}, lambda x: {"mu": float(x[0])})
+                        lambda x: {"kind": "friction", "mu": float(x[0])}, lambda x: {"mu": float(x[0])},
+                        absent=(("mu", 0.0),))
 
     @classmethod
     def example(cls, ctx, rng):
@@ -363,7 +366,7 @@ class BaseCompliance(Effect):
         return FitSpace(
             "base_compliance", ("log10_stiffness",), ("Pa/m",), _a(0.1), _a(3.0), _a(8.0), (_a(4.5), _a(5.0), _a(5.5)),
             lambda x: {"kind": "base_compliance", "stiffness": float(10.0 ** x[0])},
-            lambda x: {"stiffness": float(10.0 ** x[0])},
+            lambda x: {"stiffness": float(10.0 ** x[0])}, absent=(("log10_stiffness", math.inf),),
         )
 
     @classmethod

@@ -57,7 +57,8 @@ class ProbeRadius(Effect):
     def fit_space(cls, ctx):
         r0 = float(ctx.probe_radius)
         return FitSpace("probe_radius", ("radius",), ("m",), _a(0.0005), _a(0.2 * r0), _a(3.0 * r0), (_a(r0),),
-                        lambda x: {"kind": "probe_radius", "radius": float(x[0])}, lambda x: {"radius": float(x[0])})
+                        lambda x: {"kind": "probe_radius", "radius": float(x[0])}, lambda x: {"radius": float(x[0])},
+                        absent=(("radius", float(r0)),))
 
     @classmethod
     def example(cls, ctx, rng):
@@ -127,7 +128,7 @@ class TimeOffset(Effect):
         return FitSpace("time_offset", ("offset",), ("s",), _a(0.03), _a(-1.0), _a(1.0),
                         tuple(_a(v) for v in TIME_OFFSET_STARTS),
                         lambda x: {"kind": "time_offset", "offset": float(x[0])}, lambda x: {"offset": float(x[0])},
-                        searches=TIME_OFFSET_SEARCHES)
+                        searches=TIME_OFFSET_SEARCHES, absent=(("offset", 0.0),))
 
     @classmethod
     def example(cls, ctx, rng):
@@ -169,6 +170,7 @@ class KinematicOffset(Effect):
             _a(-0.01, -0.01, -0.01), _a(0.01, 0.01, 0.01), (_a(0.0, 0.0, 0.0),),
             lambda x: {"kind": "kinematic_offset", "offset": [float(v) for v in x]},
             lambda x: {"offset": [float(v) for v in x]},
+            absent=(("offset_x", 0.0), ("offset_y", 0.0), ("offset_z", 0.0)),
         )
 
     @classmethod
