@@ -15,6 +15,7 @@ selection rounds.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -28,7 +29,7 @@ from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_di
 if TYPE_CHECKING:  # the engine's round: its model, nuisances, held-out test and residuals
     from core.diagnosis.rounds import Round
 
-__all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "withdraw_undersized", "UNDERSIZED"]
+__all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "withdraw", "UNDERSIZED"]
 
 UNDERSIZED = 0.1
 """A claim whose size is below this fraction of its own kind's ``min_size`` is withdrawn
@@ -484,25 +485,32 @@ def undersized_claims(effects: dict[str, dict], det: dict, ctx: PhantomContext) 
     return out
 
 
-def withdraw_undersized(claimed: list, det: dict, ctx: PhantomContext) -> tuple[list, dict, dict[str, str], list]:
-    """The claims of :func:`undersized_claims` withdrawn.
+def withdraw(claimed: list, reports: list, det: dict | None, whys: dict[str, str], basis: str,
+             stated: dict[str, str] | None = None) -> tuple[list, list, dict | None, list, list[str]]:
+    """Claims taken back after they were made: below their own detectability
+    (:func:`undersized_claims`) or, refitted in the model-form worlds, holding no effect in
+    their interval (:func:`core.diagnosis.worlds.absence_within`).
 
     Args:
-        claimed: ``[(fit space, fit, report)]`` of the claimed causes. det: {kind:
-            :class:`Detectability`}. ctx: the phantom's context.
+        claimed: ``[(fit space, fit, report)]`` of the claimed causes. reports: every
+            candidate's :class:`~core.diagnosis.results.CauseReport`. det: {kind:
+            :class:`Detectability`}, or None (not computed). whys: {kind: why} of the claims
+            to withdraw. basis: how their fits are described beside E. stated: {kind: why}
+            for ``det`` when it should read otherwise than ``whys``.
 
     Returns:
-        (the claims that stand, ``det`` with each withdrawn kind "cannot tell" and its
-        reason, {kind: why} of the withdrawn ones, ``[(kind, effect dict, basis)]`` of
-        their fits as unclaimed causes for E: :func:`core.diagnosis.youngs.unexcluded_youngs`).
+        (the claims that stand, ``reports`` with the withdrawn ones unclaimed, ``det`` with
+        each withdrawn kind "cannot tell" and its reason, ``[(kind, effect dict, basis)]`` of
+        their fits as unclaimed causes for E (:func:`core.diagnosis.youngs.unexcluded_youngs`),
+        a note for diagnosis.json per withdrawn kind).
     """
-    withdrawn = undersized_claims({c.kind: f.effect for c, f, _ in claimed}, det, ctx)
-    if not withdrawn:
-        return claimed, det, {}, []
-    det = dict(det)
-    for kind, why in withdrawn.items():
-        d = det[kind]
-        det[kind] = Detectability(kind, None, dict(d.parameters), why, "cannot_tell", d.unit)
-    gone = [(c.kind, f.effect, "claimed, then withdrawn as below its own detectability")
-            for c, f, _ in claimed if c.kind in withdrawn]
-    return [t for t in claimed if t[0].kind not in withdrawn], det, withdrawn, gone
+    if not whys:
+        return claimed, reports, det, [], []
+    stated = stated or whys
+    if det is not None:
+        det = {k: Detectability(k, None, dict(d.parameters), stated[k], "cannot_tell", d.unit) if k in whys else d
+               for k, d in det.items()}
+    gone = [(c.kind, f.effect, basis) for c, f, _ in claimed if c.kind in whys]
+    notes = [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in whys.items()]
+    return ([t for t in claimed if t[0].kind not in whys], [replace(r, claimed=False) if r.kind in whys else r for r in reports],
+            det, gone, notes)

@@ -63,7 +63,7 @@ import numpy as np
 
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import detectability, unobservable, withdraw_undersized
+from core.diagnosis.detectability import detectability, undersized_claims, unobservable, withdraw
 from core.diagnosis.evidence import Evidence, Request, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
@@ -300,10 +300,12 @@ def diagnose_prepared(
                             small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
                                                                       f"how large each kind would have to be to show: {kind}"))
         lap("detectability")
-        claimed, det, withdrawn, gone = withdraw_undersized(claimed, det, ctx_all)
-        if withdrawn:  # E is refitted without them, and their fits go beside it as unclaimed causes
-            notes += [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in withdrawn.items()]
-            reports = [replace(r, claimed=False) if r.kind in withdrawn else r for r in reports]
+        # E is refitted without them, and their fits go beside it as unclaimed causes
+        claimed, reports, det, gone, said = withdraw(
+            claimed, reports, det, undersized_claims({c.kind: f.effect for c, f, _ in claimed}, det, ctx_all),
+            "claimed, then withdrawn as below its own detectability")
+        if said:
+            notes += said
             e_fit = e_fit if claimed else base_fit
 
     # E with the claimed causes, under the model-form variants and beside the unclaimed
@@ -322,14 +324,10 @@ def diagnose_prepared(
         gap = {c.kind: why for c, g, _ in claimed if (why := absence_within(c, g, worlds))}
         if not gap:
             break
-        notes += [f"the claim of {kind.replace('_', ' ')} was {why}" for kind, why in gap.items()]
-        reports = [replace(r, claimed=False) if r.kind in gap else r for r in reports]
-        if det:
-            det = {k: Detectability(k, None, dict(d.parameters), f"cannot tell from this data: a claim of it was {gap[k]}", "cannot_tell", d.unit)
-                   if k in gap else d for k, d in det.items()}
-        gone += [(c.kind, g.effect, "claimed, then withdrawn: no effect within its model-form interval")
-                 for c, g, _ in claimed if c.kind in gap]
-        claimed = [t for t in claimed if t[0].kind not in gap]
+        claimed, reports, det, more, said = withdraw(
+            claimed, reports, det, gap, "claimed, then withdrawn: no effect within its model-form interval",
+            stated={k: f"cannot tell from this data: a claim of it was {why}" for k, why in gap.items()})
+        gone, notes = gone + more, notes + said
         e_fit = e_fit if claimed else base_fit
     if det:
         youngs = with_untold_kinds(youngs, {k: d.answer for k, d in det.items()})

@@ -149,7 +149,7 @@ def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
     spaces = candidates((0.08, 0.04, 0.04), 0.005)
     inc = spaces["inclusion"]
     fit = _fit([0.0374, 0.0316, 0.0277, 0.00766, math.log10(2.287), 4.0], [1e-4, 4e-4, 5e-4, 5e-4, 0.014, 0.01])
-    why = absence_within(inc, fit, _worlds("inclusion", [0.0032, 0.0271, 0.003, 0.003, 1.5],
+    why = absence_within(inc, fit, _worlds("inclusion", [0.003, 0.0271, 0.003, 0.003, 1.5],
                                            [0.019, 0.0226, 0.019, 0.0167, -0.390]))
     assert why is not None and "withdrawn" in why and "stiffness_ratio" in why
     # the same claim with worlds that keep it stiff stands
@@ -166,3 +166,33 @@ def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
     b = _fit([4.74, 3.9], [0.001, 0.01])
     assert absence_within(base, b, _worlds("base_compliance", [4.62], [4.79])) is None
     assert absence_within(base, b, _worlds("base_compliance", [4.62], [8.0])) is not None  # as stiff as the bound
+
+
+def test_a_withdrawn_claim_is_unclaimed_cannot_tell_and_goes_beside_e():
+    """detectability.withdraw, shared by both ways a claim is taken back: the claim leaves,
+    its report is unclaimed, its detectability says "cannot tell" with the stated reason, its
+    fit goes beside E, and a note says why; the other claim is untouched."""
+    from core.diagnosis.candidates import candidates
+    from core.diagnosis.detectability import withdraw
+    from core.diagnosis.results import Detectability
+
+    spaces = candidates((0.08, 0.04, 0.04), 0.005)
+    inc = _fit([0.03, 0.02, 0.02, 0.008, 0.36, 4.0], [1e-4] * 6,
+               effect={"kind": "inclusion", "center": [0.03, 0.02, 0.02], "radius": 0.008, "stiffness_ratio": 2.29})
+    grav = _fit([0.0, 0.0, -9.8, 4.0], [0.1] * 4, effect={"kind": "gravity", "g": [0.0, 0.0, -9.8]})
+
+    def rep(kind):
+        return CauseReport(kind=kind, parameters={}, fit_variables={}, identifiable={}, delta_chi2=1.0, explained=0.1,
+                           confidence=0.99, round=0, claimed=True)
+    claimed = [(spaces["inclusion"], inc, rep("inclusion")), (spaces["gravity"], grav, rep("gravity"))]
+    det = {k: Detectability(k, 1.5, {"radius": 0.01}, "found", "found", "") for k in ("inclusion", "gravity")}
+    kept, reports, det2, gone, notes = withdraw(claimed, [r for _, _, r in claimed], det, {"inclusion": "withdrawn: x"},
+                                                "basis", stated={"inclusion": "cannot tell: x"})
+    assert [c.kind for c, _, _ in kept] == ["gravity"]
+    assert [r.claimed for r in reports] == [False, True]
+    assert det2["inclusion"].min_size is None and det2["inclusion"].answer == "cannot_tell"
+    assert det2["inclusion"].why == "cannot tell: x" and det2["inclusion"].parameters == {"radius": 0.01}
+    assert det2["gravity"] is det["gravity"]
+    assert gone == [("inclusion", inc.effect, "basis")] and notes == ["the claim of inclusion was withdrawn: x"]
+    # nothing to withdraw: everything as it was
+    assert withdraw(claimed, [], det, {}, "basis") == (claimed, [], det, [], [])

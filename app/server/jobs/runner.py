@@ -232,20 +232,26 @@ class JobRunner:
     def close(self) -> None:
         """Stop monitoring, mark unfinished jobs interrupted, close the client and cluster."""
         self._closing.set()
+        scheduler_log = logging.getLogger("distributed.scheduler")
+        level = scheduler_log.level
         if self.cluster is not None:
             # the local cluster's scheduler runs in this process: while it shuts down, a job's
             # own client (a sweep's executor on a worker) can be gone when the scheduler
             # reports a finished key to it, which it logs at CRITICAL with a traceback
             # (CommClosedError, seen in CI on Ctrl-C); the jobs are marked interrupted below
-            # and their errors reach the job rows through their futures, not these logs
-            logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL + 1)
-        for t in list(self._threads.values()):
-            t.join(timeout=5)
-        dbm.mark_interrupted(self.factory)
-        if self.client is not None:
-            self.client.close()
-        if self.cluster is not None:
-            self.cluster.close()
+            # and their errors reach the job rows through their futures, not these logs.
+            # Silenced until the cluster is closed, so a later cluster in this process logs.
+            scheduler_log.setLevel(logging.CRITICAL + 1)
+        try:
+            for t in list(self._threads.values()):
+                t.join(timeout=5)
+            dbm.mark_interrupted(self.factory)
+            if self.client is not None:
+                self.client.close()
+            if self.cluster is not None:
+                self.cluster.close()
+        finally:
+            scheduler_log.setLevel(level)
 
     # ------------------------------------------------------------------ jobs
     def submit(self, job: dbm.JobRecord, session_path: str | None, picked) -> None:
