@@ -38,6 +38,15 @@ class Server:
     """
 
     def __init__(self, data: Path, viewer: bool = False, args: Iterable[str] = (), env: Mapping[str, str] | None = None):
+        # A port found free here may be taken before the server binds it (its own Dask
+        # workers pick ephemeral ports first): then start again on another port.
+        for _ in range(3):
+            if self._start(data, viewer, args, env):
+                return
+        pytest.fail(f"server did not start: {self.log_path.read_text()[-2000:]}")
+
+    def _start(self, data: Path, viewer: bool, args: Iterable[str], env: Mapping[str, str] | None) -> bool:
+        """Start ``serve`` on a fresh port; False when a port it was given was taken meanwhile."""
         self.port = _free_port()
         cmd = [sys.executable, "-m", "app.cli", "serve", "--port", str(self.port), "--data", str(data)]
         cmd += ["--viewer-port", str(_free_port())] if viewer else ["--no-viewer"]
@@ -51,11 +60,13 @@ class Server:
         while True:
             try:
                 if httpx.get(f"{self.url}/api/health", timeout=1).status_code == 200:
-                    break
+                    return True
             except httpx.HTTPError:
                 pass
             if self.proc.poll() is not None or time.monotonic() > deadline:
                 self.stop(signal.SIGKILL)
+                if "address already in use" in self.log_path.read_text():
+                    return False
                 pytest.fail(f"server did not start: {self.log_path.read_text()[-2000:]}")
             time.sleep(0.3)
 
