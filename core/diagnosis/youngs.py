@@ -20,7 +20,7 @@ import numpy as np
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.worlds import claimed_worlds, refit_jointly
+from core.diagnosis.worlds import absence_within, claimed_worlds, refit_jointly
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import force_youngs, youngs_model_form
 from core.identification.trials import Trial
@@ -239,7 +239,10 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
         (the ``youngs_modulus`` dict with ``replay_grid_value_used``, the E the test stage
         replays with (Pa), the effects it replays with, the claimed causes' fits (refitted
         with E when they were), their model-form worlds of
-        :func:`~core.diagnosis.worlds.claimed_worlds` or None).
+        :func:`~core.diagnosis.worlds.claimed_worlds` or None). When a claimed cause's
+        worlds hold no effect (:func:`~core.diagnosis.worlds.absence_within`), the worlds
+        come first and E's model form is skipped: the caller withdraws the claim and
+        calls again without it (the ``youngs_modulus`` dict then says so, no value).
     """
     E_ext, worlds, claimed = youngs_modulus, None, list(claimed)
     effects = [e for _, f in claimed for e in f.effects]
@@ -253,18 +256,24 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             e_fit = fit_candidate(ev, None, effects, E=youngs_modulus, fit_youngs=True, fine=bool(cfg.fine_grid),
                                   iterations=max(cfg.fine_refit_iterations, 1))
         E_ext = e_fit.youngs_modulus
-        say(0.9, "Young's modulus under other laws, Poisson's ratios and grids")
+        if claimed and cfg.world_refit_iterations > 0:
+            say(0.9, "the claimed causes and Young's modulus refitted in each model-form world")
+            worlds = claimed_worlds(ev, claimed, E_ext, iterations=cfg.world_refit_iterations)
+            if any(absence_within(c, f, worlds) for c, f in claimed):
+                # the caller withdraws that claim and fits E again without it: E's model
+                # form with it would be thrown away
+                return ({"value": None, "interval": None, "identifiable": False,
+                         "reason": "a claimed cause was withdrawn; E is fitted again without it",
+                         "replay_grid_value_used": E_ext}, E_ext, effects, claimed, worlds)
+        say(0.92, "Young's modulus under other laws, Poisson's ratios and grids")
         mf = youngs_model_form(prepared, effects, E_ext, executor=executor, element_size=cfg.element_size)
         ev.simulations += len(mf["variants"]) * len(ev.names["train"])
         moved = []
         if unexcluded:
-            say(0.92, "Young's modulus beside the unclaimed causes the held-out data leaned towards")
+            say(0.94, "Young's modulus beside the unclaimed causes the held-out data leaned towards")
             moved = unexcluded_youngs(prepared, effects, E_ext, unexcluded, reference=mf["variants"][0]["youngs_modulus"],
                                       executor=executor, element_size=cfg.element_size)
             ev.simulations += len(unexcluded) * len(ev.names["train"])
-        if claimed and cfg.world_refit_iterations > 0:
-            say(0.94, "the claimed causes and Young's modulus refitted in each model-form world")
-            worlds = claimed_worlds(ev, claimed, E_ext, iterations=cfg.world_refit_iterations)
         youngs = joint_youngs(e_fit, mf, moved, worlds)
     else:
         say(0.9, "fitting Young's modulus with the claimed causes")

@@ -196,3 +196,59 @@ def test_a_withdrawn_claim_is_unclaimed_cannot_tell_and_goes_beside_e():
     assert gone == [("inclusion", inc.effect, "basis")] and notes == ["the claim of inclusion was withdrawn: x"]
     # nothing to withdraw: everything as it was
     assert withdraw(claimed, [], det, {}, "basis") == (claimed, [], det, [], [])
+
+
+def test_worlds_are_refitted_on_the_fine_grid_when_the_carry_reaches_no_effect(monkeypatch):
+    """No-effect field seed 1052 (force; a Yeoh k = 0.99 lab on 25x9x9): a probe radius
+    claimed at 8.70 mm on the fine grid for the nominal 5 mm, 5.96 mm on the coarse one. The
+    coarse worlds carried by that change (measured 5.47-6.08 mm coarse) stay above 8.2 mm,
+    but the change is within CARRY_REACH of no effect, so the worlds are refitted on the
+    fine grid, nearest first; the first (Yeoh k = 2, measured 4.95 mm there) holds the
+    nominal radius and stops them, and the claim is withdrawn. A compliant base whose
+    coarse and fine fits agree (seed 68) keeps its carried worlds: no fine refit is run.
+    The refits are stand-ins returning those measured values (the real ones are a
+    diagnosis's, measured in the bench)."""
+    from types import SimpleNamespace
+
+    from core.diagnosis import worlds as W
+
+    spaces = candidates((0.08, 0.04, 0.04), 0.005)
+    ev = SimpleNamespace(cfg=DiagnosisConfig(), executor=SimpleNamespace(concurrent=False))
+    coarse_radius = {("corotational", 0.44, 0.0): 5.96e-3, ("corotational", 0.42, 0.0): 6.08e-3,
+                     ("corotational", 0.48, 0.0): 7.85e-3, ("stable_neo_hookean", 0.42, 0.0): 5.60e-3,
+                     ("stable_neo_hookean", 0.48, 0.0): 7.67e-3, ("stable_yeoh", 0.44, 1.0): 5.62e-3,
+                     ("stable_yeoh", 0.44, 2.0): 5.47e-3}
+    fine_radius = {("stable_yeoh", 0.44, 2.0): 4.95e-3, ("stable_yeoh", 0.44, 1.0): 5.09e-3}
+    calls = []
+
+    def stand_in(ev_, claimed, E, *, fine, iterations, world=None, differences=False):
+        (space, _), = claimed
+        key = (world.law, world.poisson_ratio, world.stiffening)
+        calls.append((fine, key))
+        if space.kind == "probe_radius":
+            x = (fine_radius.get(key, 8.0e-3) if fine else coarse_radius[key])
+        else:
+            x = 4.71 if fine else 4.64 + 0.01 * world.poisson_ratio
+        f = _fit([x, math.log10(E)], [5e-5, 0.01])
+        return [(space, f)], f
+
+    monkeypatch.setattr(W, "refit_jointly", stand_in)
+    radius = spaces["probe_radius"]
+    claim = _fit([8.70e-3, 4.0], [2.4e-5, 0.01])
+    out = W.claimed_worlds(ev, [(radius, claim)], 1e4, iterations=3)
+    fine_calls = [key for fine, key in calls if fine]
+    assert fine_calls == [("stable_yeoh", 0.44, 2.0)]  # the nearest first, and it was enough
+    refitted = [w for w in out["worlds"] if "refitted on the fine grid" in w["model"]]
+    assert len(refitted) == 1 and refitted[0]["variables"]["probe_radius"] == [pytest.approx(4.95e-3)]
+    assert len(out["worlds"]) == 1 + 2 * len(VARIANTS)
+    assert "fine grid itself" in out["method"]
+    assert absence_within(radius, claim, out) is not None
+    # carried alone, the same worlds would have kept the claim
+    carried = {"worlds": [w for w in out["worlds"] if "refitted" not in w["model"]]}
+    assert absence_within(radius, claim, carried) is None
+
+    calls.clear()
+    base = spaces["base_compliance"]
+    out = W.claimed_worlds(ev, [(base, _fit([4.71, 3.9], [0.001, 0.01]))], 1e4, iterations=3)
+    assert calls and not any(fine for fine, _ in calls)
+    assert all("refitted on the fine grid" not in w["model"] for w in out["worlds"])
