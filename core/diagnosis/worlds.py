@@ -102,25 +102,15 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
     own = ModelFormVariant(COARSE, cfg.law, cfg.poisson_ratio)
     coarse_grid, fine_grid = tuple(cfg.grid), tuple(cfg.fine_grid or FINE)
 
-    def point(fits, last):
-        return {c.kind: np.asarray(f.x[:len(c.names)], dtype=np.float64) for c, f in fits}, math.log10(last.youngs_modulus)
-
     def refit(w):
         # forward differences: the coarse grid's exact derivatives can be local to a
         # near-bifurcation (see fit_candidate), where a world's refit then takes no step
         fits, last = refit_jointly(ev, claimed, youngs_modulus, fine=False, iterations=iterations, world=w,
                                    differences=True)
         ok = last is not None and math.isfinite(last.train_rss)
-        return w, point(fits, last) if ok else None
+        return w, _point(fits, last) if ok else None
 
-    everyone = [own, *variants]
-    if ev.executor.concurrent:
-        # the worlds' fits are independent, each a chain of small maps (a step's trial runs
-        # one replay per train sequence): side by side they keep both workers busy
-        with ThreadPoolExecutor(max_workers=len(everyone), thread_name_prefix="world") as pool:
-            refits = list(pool.map(refit, everyone))
-    else:
-        refits = [refit(w) for w in everyone]
+    refits = _side_by_side(ev, refit, [own, *variants])
     if refits[0][1] is None:
         return None
     spaces = {c.kind: c for c, _ in claimed}
@@ -147,7 +137,7 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
               "coarse-to-fine change")
     refined = {}
     if carried and _carry_doubtful(claimed, x_fine, x_own):
-        refined = _fine_worlds(ev, claimed, youngs_modulus, iterations, carried, worlds)
+        refined = _fine_worlds(ev, claimed, x_fine, youngs_modulus, iterations, carried, worlds)
         method += ("; the coarse-to-fine change of a claimed cause was within a factor "
                    f"{CARRY_REACH:g} of where it vanishes, so worlds were refitted on the fine grid itself "
                    "(nearest to no effect first, until one holds no effect)")
@@ -172,6 +162,21 @@ fine grid itself put it at 5.09 mm (Yeoh k = 1, nu 0.455, E 8.33 kPa for the lab
 bound: its worlds stay carried."""
 
 
+def _point(fits, last: Fit) -> tuple[dict, float]:
+    """(the causes' variables by kind, log10 E) of a refit of :func:`refit_jointly`."""
+    return {c.kind: np.asarray(f.x[:len(c.names)], dtype=np.float64) for c, f in fits}, math.log10(last.youngs_modulus)
+
+
+def _side_by_side(ev: Evidence, fn, items: list) -> list:
+    """``[fn(item)]``, in threads on a concurrent executor: the worlds' fits are
+    independent, each a chain of small maps (a step's trial runs one replay per train
+    sequence), and side by side they keep both workers busy."""
+    if ev.executor.concurrent and len(items) > 1:
+        with ThreadPoolExecutor(max_workers=len(items), thread_name_prefix="world") as pool:
+            return list(pool.map(fn, items))
+    return [fn(item) for item in items]
+
+
 def _target(space: FitSpace, j: int, value: float) -> float:
     """Where variable ``j`` vanishes, an infinite ``absent`` value replaced by its bound."""
     return value if math.isfinite(value) else float(space.upper[j] if value > 0 else space.lower[j])
@@ -181,7 +186,7 @@ def _carry_doubtful(claimed, x_fine: dict, x_own: dict) -> bool:
     """True when some claimed cause's fine fit is, in every variable where it vanishes,
     within :data:`CARRY_REACH` times its coarse-to-fine change of that value."""
     for space, _ in claimed:
-        if not space.absent or space.kind not in x_own:
+        if not space.absent:
             continue
         if all(abs(x_fine[space.kind][j] - _target(space, j, v))
                <= CARRY_REACH * abs(x_fine[space.kind][j] - x_own[space.kind][j])
@@ -190,8 +195,10 @@ def _carry_doubtful(claimed, x_fine: dict, x_own: dict) -> bool:
     return False
 
 
-def _fine_worlds(ev: Evidence, claimed, youngs_modulus: float, iterations: int, carried: dict, worlds: list) -> dict:
-    """The carried worlds refitted on the fine grid, nearest to no effect first (by their
+def _fine_worlds(ev: Evidence, claimed, x_fine: dict, youngs_modulus: float, iterations: int, carried: dict,
+                 worlds: list) -> dict:
+    """The carried worlds refitted on the fine grid (``x_fine``: the claimed causes' fine
+    fits' variables by kind), nearest to no effect first (by their
     carried values), two at a time on a concurrent executor (this machine's cores), until a claimed cause's
     interval over the worlds so far holds no effect (:func:`absence_within`).
 
@@ -199,8 +206,6 @@ def _fine_worlds(ev: Evidence, claimed, youngs_modulus: float, iterations: int, 
         ``{world: (variables by kind, log10 E)}`` of the worlds refitted (a diverged refit
         is left out and its carried value kept).
     """
-    x_fine = {c.kind: np.asarray(f.x[:len(c.names)], dtype=np.float64) for c, f in claimed}
-
     def nearness(item):
         # the carried value's distance from no effect, relative to the fine fit's, at its largest
         _, (x_c, _) = item
@@ -217,19 +222,12 @@ def _fine_worlds(ev: Evidence, claimed, youngs_modulus: float, iterations: int, 
 
     def refit(w):
         fits, last = refit_jointly(ev, claimed, youngs_modulus, fine=True, iterations=iterations, world=w)
-        if last is None or not math.isfinite(last.train_rss):
-            return w, None
-        return w, ({c.kind: np.asarray(f.x[:len(c.names)], dtype=np.float64) for c, f in fits},
-                   math.log10(last.youngs_modulus))
+        ok = last is not None and math.isfinite(last.train_rss)
+        return w, _point(fits, last) if ok else None
 
     done: dict = {}
     for i in range(0, len(order), width):
-        batch = order[i:i + width]
-        if len(batch) > 1:
-            with ThreadPoolExecutor(max_workers=len(batch), thread_name_prefix="fine-world") as pool:
-                got = list(pool.map(refit, batch))
-        else:
-            got = [refit(batch[0])]
+        got = _side_by_side(ev, refit, order[i:i + width])
         done.update({w: r for w, r in got if r is not None})
         sofar = {"worlds": worlds + [{"variables": {k: [float(a) for a in x] for k, x in r[0].items()}}
                                      for r in done.values()]}
