@@ -22,7 +22,7 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
-from core.diagnosis.nuisance import FreeBeside, Nuisance, model_form_worlds
+from core.diagnosis.nuisance import FreeBeside, Nuisance, mesh_world, model_form_worlds
 from core.diagnosis.results import Detectability
 from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_dict
 
@@ -127,7 +127,8 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
     The kind's change of the data is simulated in the replay's own physics and in each
     model-form world (:func:`core.diagnosis.nuisance.model_form_worlds`: the base model
     with one of the neo-Hookean law, Poisson's ratio 0.38 or 0.485, Rayleigh damping 0.05
-    or 0.3 s, a 10x softer or 1.9x stiffer contact) as ``X_W = run(W + effect) - run(W)``,
+    or 0.3 s, a 10x softer or 1.9x stiffer contact; and :func:`core.diagnosis.nuisance.mesh_world`,
+    the fine mesh) as ``X_W = run(W + effect) - run(W)``,
     at ``size`` and scaled linearly. The test still fits the kind as the replay makes it
     (along its own signature D, beside the bounded nuisances), so where a world's change
     differs from D, or is weaker, less of it is explained. The noise-free statistic is the
@@ -142,33 +143,47 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
     explains 437 (chi2) of held-out data against the 2268 of the replay's own and a
     critical 1061 (Poisson's ratio 0.38: 125).
     """
-    worlds = model_form_worlds(ev)
+    worlds = [(name, f, False) for name, f in model_form_worlds(ev)]
+    mesh = mesh_world(ev)
+    if mesh is not None:
+        worlds.append((*mesh, True))
     if not worlds:
         return size, ""
     s_max = cls.strength(cls.max_size)
     fixed, E = tuple(rnd.fixed), rnd.youngs_modulus
     nuis = rnd.nuisance
     found, label = size, ""
+    roles = ("train", "validation")
     for _ in range(2):
         eff = cls.sized(size, ctx, **assumed).to_dict()
         st = cls.strength(size)
         if st == 0:
             return found, label
-        specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in worlds]
-                 + [Spec(fixed + (eff,), E, **f) for _, f in worlds])
-        roles = ("train", "validation")
-        vec = {role: [ev.vector(run) for run in runs]
-               for role, runs in zip(roles, ev.runs_together([Request(specs, role) for role in roles]))}
+        # per world the runs without and with the effect; the coarse worlds and the fine
+        # one go through one map
+        coarse = [(name, f) for name, f, fine in worlds if not fine]
+        fine_w = [(name, f) for name, f, fine in worlds if fine]
+        specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in coarse]
+                 + [Spec(fixed + (eff,), E, **f) for _, f in coarse])
+        fine_specs = [Spec(fixed, E, **f) for _, f in fine_w] + [Spec(fixed + (eff,), E, **f) for _, f in fine_w]
+        requests = [Request(specs, role) for role in roles]
+        if fine_specs:
+            requests += [Request(fine_specs, role, fine=True) for role in roles]
+        out = ev.runs_together(requests)
+        vec = {role: [ev.vector(run) for run in out[i]] for i, role in enumerate(roles)}
+        vec_fine = ({role: [ev.vector(run, shifted=False) for run in out[2 + i]] for i, role in enumerate(roles)}
+                    if fine_specs else {})
         D_t, D_v = (vec["train"][0] - rnd.r_train) / st, (vec["validation"][0] - rnd.r_validation) / st
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))):
             return found, label
-        n = len(worlds)
         changes = [("", D_t, D_v)]
-        for i, (name, _) in enumerate(worlds):
-            X_t = (vec["train"][1 + n + i] - vec["train"][1 + i]) / st
-            X_v = (vec["validation"][1 + n + i] - vec["validation"][1 + i]) / st
-            if np.all(np.isfinite(X_t)) and np.all(np.isfinite(X_v)):
-                changes.append((name, X_t, X_v))
+        for names, runs in ((coarse, {r: v[1:] for r, v in vec.items()}), (fine_w, vec_fine)):
+            n = len(names)
+            for i, (name, _) in enumerate(names):
+                X_t = (runs["train"][n + i] - runs["train"][i]) / st
+                X_v = (runs["validation"][n + i] - runs["validation"][i]) / st
+                if np.all(np.isfinite(X_t)) and np.all(np.isfinite(X_v)):
+                    changes.append((name, X_t, X_v))
         fit = nuis.beside(D_t, D_v)  # the signature as a free column beside the bounded nuisances
 
         def weakest(s):

@@ -1,0 +1,87 @@
+"""The detectability's model-form worlds: a "not found above" size holds on the fine mesh too."""
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.detectability import _world_min_size
+from core.diagnosis.inference import HeldOutTest
+from core.diagnosis.nuisance import Nuisance, mesh_world, model_form_worlds
+from core.simulation.effects import EFFECT_KINDS, PhantomContext
+
+L = 60  # entries of a residual vector per role
+SIGMA2 = 1e-2
+
+
+class _Evidence:
+    """Stand-in evidence: a run is its (spec, fine); its residual vector is a base plus,
+    with the probe-radius effect, the size (m) times the change of its world."""
+
+    def __init__(self, cfg, change_coarse, change_fine):
+        self.cfg, self.sigma2 = cfg, SIGMA2
+        self.change = {False: change_coarse, True: change_fine}  # {fine: {role: (L,) per m}}
+        self.fine_runs = 0
+
+    def runs_together(self, requests):
+        self.fine_runs += sum(len(r.models) for r in requests if r.fine)
+        return [[(spec, req.role, req.fine) for spec in req.models] for req in requests]
+
+    def vector(self, run, shifted=True):
+        spec, role, fine = run
+        v = np.full(L, 0.3 if fine else 0.1)  # the fine mesh's base differs from the coarse one
+        for e in spec.effects:
+            if e["kind"] == "probe_radius":
+                v = v + (e["radius"] - 0.005) * self.change[fine][role]
+        return v
+
+
+def _round(rng):
+    N_t, N_v = rng.normal(size=(L, 2)), rng.normal(size=(L, 2))
+    nuis = Nuisance(N_t, N_v, ("dent", "dent"), np.full(2, -np.inf), np.full(2, np.inf))
+    e_t, e_v = rng.normal(scale=0.1, size=L), rng.normal(scale=0.1, size=L)
+    blocks = np.arange(L) // 6
+    test = HeldOutTest(nuis, nuis.project(e_t), e_v, blocks, blocks, SIGMA2, replicates=999, seed=0)
+    base = np.full(L, 0.1)
+    return SimpleNamespace(fixed=[], youngs_modulus=5000.0, nuisance=nuis, test=test, r_train=base, r_validation=base)
+
+
+@pytest.mark.parametrize("fine_grid", [(25, 9, 9), None])
+def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
+    """Every coarse world makes the replay's own change of the data. When the fine mesh
+    makes it too, the size is the replay's; when it makes half of it, a larger size is
+    needed and the fine mesh is named; when its change is orthogonal to the replay's
+    (after the nuisances), no size would be claimed ("cannot tell"). Without a fine grid
+    the fine mesh is no world and is never simulated."""
+    rng = np.random.default_rng(5)
+    cfg = replace(DiagnosisConfig(), fine_grid=fine_grid)
+    rnd = _round(rng)
+    cls, ctx = EFFECT_KINDS["probe_radius"], PhantomContext(np.array([0.06, 0.04, 0.03]), probe_radius=0.005)
+    D = {"train": rng.normal(size=L) * 100, "validation": rng.normal(size=L) * 100}
+    critical = 50.0
+
+    same = _Evidence(cfg, D, D)
+    base_size, world = _world_min_size(same, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
+    assert base_size is not None and 0 < base_size < cls.max_size and world in ("", *[n for n, _ in model_form_worlds(same)])
+    if fine_grid is None:
+        assert mesh_world(same) is None
+        weak = _Evidence(cfg, D, {r: np.zeros(L) for r in D})
+        assert _world_min_size(weak, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)[0] == pytest.approx(base_size)
+        assert weak.fine_runs == 0
+        return
+    label = mesh_world(same)[0]
+    assert label == "the 25x9x9 mesh" and same.fine_runs > 0
+
+    half = _Evidence(cfg, D, {r: 0.5 * v for r, v in D.items()})
+    size, world = _world_min_size(half, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
+    assert world == label and size > 1.5 * base_size
+
+    u = {r: rnd.nuisance.project(rng.normal(size=L)) for r in D}  # the nuisances leave the change whole
+    d_t = rnd.nuisance.project(D["train"])
+    u["train"] = u["train"] - d_t * (u["train"] @ d_t) / (d_t @ d_t)  # orthogonal to the fitted signature
+    u["validation"] = np.zeros(L)  # and nothing of it along the signature on held-out data
+    ortho = _Evidence(cfg, D, u)
+    size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
+    assert size is None and world == label
