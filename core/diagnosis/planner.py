@@ -53,7 +53,7 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Spec
 from core.diagnosis.moves import Move, PlanError, PlanLimits, candidate_moves, move_path, surface_moves, within_duration
 from core.diagnosis.patches import field_layout
-from core.diagnosis.nuisance import model_form_worlds, nuisance_columns
+from core.diagnosis.nuisance import mesh_world, model_form_worlds, nuisance_columns
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
@@ -266,11 +266,15 @@ def plan_experiment(
         ctx = PhantomContext(size, radius, points.reshape(-1, 3), normals.reshape(-1, 3), shape)
     crit = _critical(cfg.alpha, len(all_kinds))
 
-    def evidence_for(move_list):
+    def evidence_for(move_list, fine=False):
+        """The virtual session of ``move_list`` with the session's coverage and noise; with
+        ``fine``, the fine grid is kept for the fine-mesh world (:func:`_world_q`; the coarse
+        runs step at the simulator's own dt as without it, and nothing is shifted)."""
         t, c = move_path(move_list, size, radius, lim)
         path = ProbePath(t, c)
         virt = _virtual_session(prepared, path, lim.camera_rate, layout)
-        ev = Evidence(virt, replace(session_cfg, use_force=False), executor, layout)
+        vcfg = replace(cfg, coarse_dt=None) if fine else session_cfg
+        ev = Evidence(virt, replace(vcfg, use_force=False), executor, layout)
         for n in ev.counts:
             ev.counts[n] = np.where(ev.counts[n] > 0, counts[None, :], 0.0)
             ev.raw_counts[n] = ev.counts[n]
@@ -330,7 +334,7 @@ def plan_experiment(
     if not chosen:
         chosen = [moves[0]]
     say(0.7, "predicting what the plan would show, in every model-form world")
-    ev = evidence_for(chosen)
+    ev = evidence_for(chosen, fine=True)
     q_all = q_of(ev, all_kinds, worlds=True)
     predicted, current, set_by = {}, {}, {}
     for k in all_kinds:
@@ -366,7 +370,9 @@ def _world_q(ev: Evidence, fixed: tuple, E: float, effect: dict, D: np.ndarray, 
 
     As the diagnosis states a kind's size (:func:`core.diagnosis.detectability._world_min_size`),
     the kind's change of the data is simulated in each model-form world ``W``
-    (:func:`core.diagnosis.nuisance.model_form_worlds`) as ``X_W = run(W + effect) - run(W)``,
+    (:func:`core.diagnosis.nuisance.model_form_worlds`, and the fine mesh,
+    :func:`core.diagnosis.nuisance.mesh_world`, when ``ev`` keeps a fine grid) as
+    ``X_W = run(W + effect) - run(W)``,
     per unit strength, with the nuisance directions projected out; the test fits the kind
     along its replay signature ``D`` (nuisances projected out too), which explains
     ``(X_W . D)^2 / |D|^2`` of it. The least of that and the replay's own ``q`` is kept.
@@ -378,14 +384,20 @@ def _world_q(ev: Evidence, fixed: tuple, E: float, effect: dict, D: np.ndarray, 
             directions. sigma2: the field's noise variance. q: the replay's own q.
     """
     worlds = model_form_worlds(ev)
-    if not worlds:
-        return q, ""
-    specs = [Spec(fixed, E, **f) for _, f in worlds] + [Spec(fixed + (effect,), E, **f) for _, f in worlds]
-    vec = [ev.vector(r) for r in ev.runs(specs, "validation")]
+    changes = []  # (world, its change of the data per unit strength)
+    if worlds:
+        specs = [Spec(fixed, E, **f) for _, f in worlds] + [Spec(fixed + (effect,), E, **f) for _, f in worlds]
+        vec = [ev.vector(r) for r in ev.runs(specs, "validation")]
+        changes += [(name, (vec[len(worlds) + i] - vec[i]) / strength) for i, (name, _) in enumerate(worlds)]
+    mesh = mesh_world(ev)
+    if mesh is not None:
+        name, f = mesh
+        base, with_effect = (ev.vector(r, shifted=False)
+                             for r in ev.runs([Spec(fixed, E, **f), Spec(fixed + (effect,), E, **f)], "validation", fine=True))
+        changes.append((name, (with_effect - base) / strength))
     dd = float(D @ D)
     best, label = q, ""
-    for i, (name, _) in enumerate(worlds):
-        X = (vec[len(worlds) + i] - vec[i]) / strength
+    for name, X in changes:
         if not (np.all(np.isfinite(X)) and dd > 0):
             continue
         q_w = float(project(X) @ D) ** 2 / dd / sigma2
@@ -428,7 +440,7 @@ def write_plan(plan: Plan, out: str | Path) -> Path:
                      f"{'cannot tell' if pred is None else f'{pred:.3g} {unit}'}"
                      f"{f' (for a phantom with {world})' if world else ''} |")
     lines += ["", "Predicted sizes hold in the replay's physics and in every model-form world (another law, "
-              "Poisson's ratio, damping or contact within the plausible range); the diagnosis of the recorded "
+              "Poisson's ratio, damping or contact within the plausible range, or the finer mesh); the diagnosis of the recorded "
               "session also asks a claim to beat the model-form gap its data show, so it may state more."]
     (out / "plan.md").write_text("\n".join(lines) + "\n")
     return out

@@ -136,10 +136,11 @@ def test_plan_for_friction_slides_and_records_force(small_session, tmp_path):
 def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
     """The planner's q is the least of the replay's and every model-form world's: a world
     whose change of the data is half the replay's signature needs twice the strength (q/4),
-    one whose change the fit along the signature cannot take up leaves nothing (q 0), and
-    the nuisance directions are projected out of the worlds' changes too."""
+    one whose change the fit along the signature cannot take up leaves nothing (q 0), the
+    nuisance directions are projected out of the worlds' changes too, and the fine mesh
+    (its runs on the fine grid, unshifted, its own base) is one of the worlds."""
     from core.diagnosis.config import DiagnosisConfig
-    from core.diagnosis.nuisance import model_form_worlds
+    from core.diagnosis.nuisance import mesh_world, model_form_worlds
     from core.diagnosis.planner import _world_q
 
     rng = np.random.default_rng(3)
@@ -162,19 +163,21 @@ def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
             self.change = change  # {world label: its change of the data per unit strength}
             self.labels = {repr(f): name for name, f in model_form_worlds(self)}
 
-        def runs(self, specs, role):
+        def runs(self, specs, role, fine=False):
             assert role == "validation"
-            return specs
+            return [(spec, fine) for spec in specs]
 
-        def vector(self, spec):
+        def vector(self, run, shifted=True):
+            spec, fine = run
             fields = {k: getattr(spec, k) for k in ("law", "poisson_ratio", "simulation")
                       if getattr(spec, k) not in (None, ())}
-            name = self.labels[repr(fields)]
-            base = np.full(L, 0.1)
+            name = mesh_world(self)[0] if fine else self.labels[repr(fields)]
+            base = np.full(L, 0.3 if fine else 0.1)
             return base + (strength * self.change[name] if effect in spec.effects else 0.0)
 
     names = [name for name, _ in model_form_worlds(FakeEvidence({}))]
     assert len(names) == 7
+    names.append(mesh_world(FakeEvidence({}))[0])  # the fine mesh, its base its own
     # every world makes the replay's own change: q unchanged, no world named
     same = FakeEvidence({n: D_raw for n in names})
     assert _world_q(same, (), 5000.0, effect, D, strength, project, sigma2, q) == (pytest.approx(q, rel=1e-9), "")
@@ -189,3 +192,8 @@ def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
     ortho[names[5]] = u - D * (u @ D) / (D @ D)
     got, world = _world_q(FakeEvidence(ortho), (), 5000.0, effect, D, strength, project, sigma2, q)
     assert got == pytest.approx(0.0, abs=1e-9 * q) and world == names[5]
+    # the fine mesh making a third of it: q / 9, the fine mesh named
+    third = dict(same.change)
+    third[names[-1]] = D_raw / 3
+    got, world = _world_q(FakeEvidence(third), (), 5000.0, effect, D, strength, project, sigma2, q)
+    assert got == pytest.approx(q / 9, rel=1e-9) and world == "the 25x9x9 mesh"
