@@ -85,3 +85,13 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     ortho = _Evidence(cfg, D, u)
     size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
     assert size is None and world == label
+
+
+def test_the_fine_mesh_of_a_phantom_stl_is_named_by_its_element_size():
+    """An STL phantom's fine mesh is its own at half the mean edge, not the box's 25x9x9
+    grid: the world is named by its element size, and runs at the fine fits' time step."""
+    cfg = DiagnosisConfig()
+    label, fields = mesh_world(SimpleNamespace(cfg=cfg, fine_element_size=0.0035))
+    assert label == "the finer mesh (3.5 mm elements)"
+    assert fields == {"simulation": (("dt", cfg.fine_fit_dt),)}
+    assert mesh_world(SimpleNamespace(cfg=replace(cfg, nuisances=tuple(n for n in cfg.nuisances if n != "mesh")))) is None
