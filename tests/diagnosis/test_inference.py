@@ -279,6 +279,13 @@ def test_a_kind_the_data_lean_towards_or_disagree_on_is_not_called_absent():
     # train fitted a change worth 600 against a critical 500, validation gave it 50
     why = unsettled(evidence(50.0, 500.0, 0.3, S=600.0), 0.01)
     assert why.startswith("cannot tell") and "disagree" in why and "600" in why
+    # the drop passed its critical value, the change the fit makes did not (lab seed 78's gravity)
+    why = unsettled(evidence(25799.0, 23722.0, 0.0009, S=23026.0), 0.01)
+    assert why.startswith("cannot tell") and "worth 23026" in why and "does not reproduce" in why
+    assert "a claim needs 23722 beside" not in why
+    # passed and reproduced, yet not claimed by the round's selection
+    why = unsettled(evidence(25799.0, 23722.0, 0.0009, S=24000.0), 0.01)
+    assert why.startswith("cannot tell") and "selection did not claim it" in why
     # no evidence, or evidence above alpha, or a fit that made validation worse: not found stands
     assert unsettled(evidence(50.0, 500.0, 0.3, S=100.0), 0.01) is None
     assert unsettled(evidence(2376.0, 2630.0, 0.011, S=1500.0), 0.01) is None
