@@ -276,9 +276,10 @@ def mesh_world(ev: Evidence) -> tuple[str, dict] | None:
     """The phantom as the fine mesh makes it, ``(label, Spec fields)`` of runs on
     ``cfg.fine_grid`` (at ``cfg.fine_fit_dt``; a ``phantom.stl`` phantom's fine mesh is its
     own at half the mean edge, :attr:`Evidence.fine_element_size`, and the label says so),
-    or None without the mesh nuisance or a fine grid. A world a kind's detectability must hold for beside :func:`model_form_worlds`:
-    a real phantom is a continuum, and where a kind's change of the data is a feature of
-    the replay's coarse mesh the fine mesh does not make it. Measured on a lab session
+    or None without the mesh nuisance or a fine grid. A world a kind's detectability must
+    hold for beside :func:`model_form_worlds`: a real phantom is a continuum, and where a
+    kind's change of the data is a feature of the replay's coarse mesh the fine mesh does
+    not make it. Measured on a lab session
     (seed 77, a 10 mm probe recorded as 5 mm, Yeoh law on 19x7x7, force): a 5 mm larger
     sphere's change of the data on 25x9x9 lies at cos 0.76 to the 13x5x5 replay's and
     fitted along the replay's it explains -907 (chi2) of held-out data against the 5692
