@@ -80,9 +80,10 @@ def test_fifty_concurrent_submissions_are_all_stored_and_all_finish(live):
     for i in ids:
         job = final[i]
         if i in cancelled_ok:
-            assert job["status"] in ("cancelled", "done"), job  # a cancel can lose the race to the finish
+            # a cancel can lose the race to the finish
+            assert job["status"] in ("cancelled", "done"), (job["status"], job["error"], job["log"])
         else:
-            assert job["status"] == "done", job
+            assert job["status"] == "done", (job["status"], job["error"], job["log"])
         if job["status"] == "done":
             seq = job["result"]["sequences"]["seq00"]
             assert seq["status"] == "ok" and 0 < seq["mean_error"] < 0.01, job["result"]

@@ -27,6 +27,7 @@ import threading
 import time
 import traceback as tb_module
 import uuid
+from concurrent.futures import CancelledError
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -334,12 +335,22 @@ class JobRunner:
                     job.log = _append(job.log, str(payload))
 
     def _finish(self, job_id: int, future) -> None:
-        status = future.status
+        try:
+            self._finish_as(job_id, future, future.status)
+        except CancelledError:
+            # the user's cancel reached the scheduler between reading the status and the
+            # result (measured under load: a cancel sent while the job's "started" report
+            # was still on its way, so the task was cancelled as a queued one)
+            self._finish_as(job_id, future, "cancelled")
+
+    def _finish_as(self, job_id: int, future, status: str) -> None:
         result, error, trace = None, None, None
         if status == "finished":
             try:
                 result = future.result()
                 final = dbm.DONE
+            except CancelledError:
+                raise
             except Exception as exc:  # a result that cannot be unpickled
                 final, error, trace = dbm.FAILED, f"{type(exc).__name__}: {exc}", tb_module.format_exc()
         elif status == "cancelled":
