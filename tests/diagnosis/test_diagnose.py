@@ -120,7 +120,10 @@ def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypa
     """Where the fine-mesh reference diverges (a deep press inverting its small elements;
     measured on a dome pressed 9.6 mm at its 25 mm apex) and the replay's own mesh does not,
     the diagnosis carries on without it and says so in ``notes``, instead of failing. The
-    fine runs are made to diverge here by reporting them so (the lab's sessions do not)."""
+    fine runs are made to diverge here by reporting them so (the lab's sessions do not).
+    The fine reference is dropped at the base model, before any round, so the round's
+    nuisances and null on the coarse grid alone are the check that it carries on (no
+    candidate fitted: 52 s of the suite's time with one round, ~10 s without)."""
     from dataclasses import replace
 
     import core.diagnosis.evidence as evidence
@@ -134,12 +137,12 @@ def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypa
         return replace(run, ok=False) if tuple(item.trial.grid) == tuple(fine_grid) else run
 
     monkeypatch.setattr(evidence, "run_field", run_field)
-    d = diagnose(session, DiagnosisConfig(max_causes=1, detectability=False, fit_youngs=False, n_boot=50))
+    d = diagnose(session, DiagnosisConfig(max_causes=0, detectability=False, fit_youngs=False, n_boot=50))
     data = d.to_json()
     assert d.config.fine_grid is None and "mesh" not in d.nuisances
     assert len(data["notes"]) == 1 and "fine-mesh reference diverged" in data["notes"][0]
+    assert 0.0 < d.baseline_test_error < 0.01 and d.causes == []  # carried on to the test sequences (m)
     from core.diagnosis.report import write_diagnosis
 
     write_diagnosis(d, tmp_path)
     assert "fine-mesh reference diverged" in (tmp_path / "report.md").read_text()
-    assert d.causes == []  # the same no-effect session: still nothing claimed
