@@ -282,10 +282,8 @@ def diagnose_prepared(
             claimed[i] = (c, g, replace(rep, **fit_fields(c, g)))
     # final refit on the fine grid: the coarse signatures of local causes (a dent's
     # shift, a clock offset) are blurred by 6 x 10 mm elements (measured: a 0.15 s offset
-    # fitted at 0.074 s, a lateral probe offset at about half, gravity 8 % high). With
-    # force data the E stage refits them on the fine grid with E (youngs_of_extended), so
-    # this refit at the round's E would only be its starting point
-    if claimed and cfg.fine_grid and cfg.fine_refit_iterations > 0 and not (joint and cfg.joint_refit_iterations > 0):
+    # fitted at 0.074 s, a lateral probe offset at about half, gravity 8 % high)
+    if claimed and cfg.fine_grid and cfg.fine_refit_iterations > 0:
         say(0.72, "refitting the claimed causes on the fine grid")
         for i, (c, f, rep) in enumerate(list(claimed)):
             others = [e for j, (_, g, _) in enumerate(claimed) if j != i for e in g.effects]
