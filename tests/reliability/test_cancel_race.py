@@ -21,9 +21,6 @@ class _RacedFuture:
     def result(self):
         raise FutureCancelledError("tt-1-job", reason="unknown")
 
-    def exception(self):
-        raise FutureCancelledError("tt-1-job", reason="unknown")
-
     def traceback(self):
         return None
 

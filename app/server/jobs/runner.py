@@ -335,29 +335,28 @@ class JobRunner:
                     job.log = _append(job.log, str(payload))
 
     def _finish(self, job_id: int, future) -> None:
-        try:
-            self._finish_as(job_id, future, future.status)
-        except CancelledError:
-            # the user's cancel reached the scheduler between reading the status and the
-            # result (measured under load: a cancel sent while the job's "started" report
-            # was still on its way, so the task was cancelled as a queued one)
-            self._finish_as(job_id, future, "cancelled")
-
-    def _finish_as(self, job_id: int, future, status: str) -> None:
+        status = future.status
         result, error, trace = None, None, None
         if status == "finished":
             try:
                 result = future.result()
                 final = dbm.DONE
             except CancelledError:
-                raise
+                # the user's cancel reached the scheduler between the status and the result
+                # (measured under load: a cancel sent while the job's "started" report was
+                # still on its way, so the task was cancelled as a queued one)
+                final, error = dbm.CANCELLED, "cancelled by the user"
             except Exception as exc:  # a result that cannot be unpickled
                 final, error, trace = dbm.FAILED, f"{type(exc).__name__}: {exc}", tb_module.format_exc()
         elif status == "cancelled":
             final, error = dbm.CANCELLED, "cancelled by the user before it started"
         else:
-            exc = future.exception()
-            trace = "".join(tb_module.format_list(tb_module.extract_tb(future.traceback()))) if future.traceback() else None
+            try:
+                exc = future.exception()
+                tb = future.traceback()
+            except CancelledError:  # the same race after an "error" status
+                exc, tb = JobCancelled("cancelled by the user"), None
+            trace = "".join(tb_module.format_list(tb_module.extract_tb(tb))) if tb else None
             name = type(exc).__name__
             if isinstance(exc, JobCancelled) or name == "JobCancelled":
                 final, error = dbm.CANCELLED, str(exc) or "cancelled by the user"
