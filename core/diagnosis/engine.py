@@ -27,11 +27,13 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    sessions (before the rule): the spurious claims' fitted changes were worth 0.13-0.78
    of their critical values (six of seven; a friction claim on one no-effect session,
    3.4 times, is kept), the true gravity and compliant-base claims' 1.30 and 1.46 times.
-   A third check: the drop must exceed what the base model itself gains at the ends of its
-   model-form gap's plausible range, one property at a time or all at once (damping,
-   Poisson's ratio, contact, law;
-   :func:`core.diagnosis.nuisance.model_form_drops`), which the linear, bounded nuisance
-   directions can miss.
+   A third check runs in the model-form worlds (the base model at the ends of its
+   plausible range, one property at a time or all at once: damping, Poisson's ratio,
+   contact, law; :func:`core.diagnosis.nuisance.model_form_drops`), which the linear,
+   bounded nuisance directions can miss: added to each world that explains part of the
+   residual, the fitted cause must still explain its critical value of the held-out data
+   (the nested test, :func:`core.diagnosis.nuisance.beyond_model_form`). A residual one of
+   them explains leaves it nothing there; a residual of another shape does not go away.
    The significant kind with the largest drop is claimed and the others are refitted on
    top of it (greedy forward selection), unless a rival explains as much or a larger,
    unconfirmed explanation shadows it; then the kinds are reported as confounded and
@@ -67,10 +69,10 @@ from core.diagnosis.detectability import detectability, undersized_claims, unobs
 from core.diagnosis.evidence import Evidence, Request, drop_binned_points
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import claim_check, holm, holm_adjusted
+from core.diagnosis.inference import holm, holm_adjusted
 from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
-from core.diagnosis.rounds import CandidateEvidence, Round, assess_all, channel_masks, model_form_json
+from core.diagnosis.rounds import CandidateEvidence, Round, assess_all, beyond_verdict, channel_masks, model_form_json
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
 from core.diagnosis.worlds import absence_within, with_intervals
@@ -213,13 +215,12 @@ def diagnose_prepared(
         last_evidence = evid
         pvals = {k: e.p_value for k, e in evid.items()}
         # a kind is claimed when Holm's procedure rejects its absence and it passes
-        # inference.claim_check (its fitted change reproduces, no channel made worse, it
-        # explains more than the model-form gap's plausible range)
-        significant = set()
+        # rounds.beyond_verdict (its fitted change reproduces, no channel made worse, and it
+        # still explains held-out data in each model-form world that explains part of it)
+        significant, nested = set(), {}
         rejected = set(holm(pvals, cfg.alpha))
         for k in rejected:
-            verdict = claim_check(evid[k].statistic, evid[k].critical, evid[k].reproduction, evid[k].channels,
-                                  rnd.model_form(ev))
+            verdict, nested[k] = beyond_verdict(rnd, ev, evid[k])
             refused.pop(k, None)
             small.pop(k, None)
             if verdict is None:
@@ -240,7 +241,8 @@ def diagnose_prepared(
                 score=float(e.statistic / e.critical) if e.critical > 0 and math.isfinite(e.critical) else None,
                 significant=k in significant, channels=e.channels,
                 reproduction=e.reproduction,
-                model_form_bar=rnd.model_form(ev)[1] if rnd._model_form is not None else None)
+                model_form_bar=rnd.model_form(ev)[1] if rnd._model_form is not None else None,
+                model_form_nested=nested.get(k))
         lap(f"round {rnd_i}")
         if not significant:
             reports += list(round_reports.values())

@@ -257,11 +257,11 @@ def reproduction(before: np.ndarray, after: np.ndarray, sigma2: float = 1.0) -> 
     return {"expected": float(D @ D / sigma2), "observed": float((before @ before - after @ after) / sigma2)}
 
 
-def claim_check(statistic: float, critical: float, reproduced: dict, channels: dict,
-                model_form: tuple[str, float] = ("", 0.0)) -> tuple[str, str] | None:
-    """Whether a kind whose held-out drop passed Holm's procedure may be claimed.
+def claim_check(statistic: float, critical: float, reproduced: dict, channels: dict) -> tuple[str, str] | None:
+    """Whether a kind whose held-out drop passed Holm's procedure may be claimed, before the
+    model-form worlds are asked (:func:`core.diagnosis.rounds.beyond_verdict`).
 
-    Three checks against the model-form gap, which the wild bootstrap treats as noise
+    Two checks against the model-form gap, which the wild bootstrap treats as noise
     although it repeats in every block:
 
     1. **Reproduced at its fitted size.** The change the fit makes must itself be worth a
@@ -272,24 +272,19 @@ def claim_check(statistic: float, critical: float, reproduced: dict, channels: d
        the two.
     2. **No channel made worse** (:func:`channel_worsening`): a gain in one channel bought
        with a significant loss in another is the gap, not the kind.
-    3. **More than the model-form gap's plausible range explains**: ``T`` above the
-       held-out drop of the best model-form variant at an end of its range, alone or at a
-       corner of the box (:func:`core.diagnosis.nuisance.model_form_drops`; damping,
-       Poisson's ratio, contact stiffness, material law). Measured on a no-effect field session without
-       force whose phantom was damped at 0.157 s (the replay's 0.1 s): a Maxwell arm of
-       0.05 s passed the first two checks at T 307 (critical 158), while the replay at
-       0.3 s damping lowered the held-out chi-square by 486 and at the phantom's own 0.157 s
-       left nothing to claim.
+
+    A third, in the model-form worlds, needs simulations and is run by the caller
+    (:func:`core.diagnosis.nuisance.beyond_model_form`): the fitted cause, added to each
+    phantom of the gap's plausible range that explains part of the residual, must still
+    explain its critical value there.
 
     Args:
         statistic: the held-out drop T, chi2. critical: the T the claim needed, chi2.
         reproduced: :func:`reproduction` of the candidate. channels: :func:`channel_worsening` of it.
-        model_form: (variant, T_v) the best model-form variant and its held-out drop, chi2.
 
     Returns:
         None when the claim stands, else ``(reason, why)`` with reason ``"channel_worse"``
-        or ``"model_form"`` (answer "cannot tell") or ``"not_reproduced"`` (answer "not
-        found" above its size).
+        (answer "cannot tell") or ``"not_reproduced"`` (answer "not found" above its size).
     """
     worse = [c for c, v in channels.items() if v["worse"]]
     if worse:
@@ -299,12 +294,6 @@ def claim_check(statistic: float, critical: float, reproduced: dict, channels: d
                 f"{' and '.join(gains) or 'no channel'} but made the held-out {' and '.join(worse)} "
                 f"significantly worse (" + ", ".join(f"{c} t = {channels[c]['t']:.2f}" for c in worse)
                 + "): the base model's form gap explains that residual as well as this kind")
-    variant, t_mf = model_form
-    if t_mf > 0 and statistic <= t_mf:
-        return ("model_form",
-                f"cannot tell from this data: its fit explained {statistic:.0f} (chi2) of the held-out residual, "
-                f"but the base model with {variant} (within the model-form gap's plausible range) explains "
-                f"{t_mf:.0f}: the data do not tell this kind from the base model's own form gap")
     S = float(reproduced.get("expected", math.inf))
     if S < critical:
         ask = 0.5 * (statistic / max(S, 1e-12) + 1.0)

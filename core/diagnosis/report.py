@@ -199,9 +199,10 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
               f"the chance that anything is claimed is at most {100 * diag.config.alpha:g} %. A kind that passes but "
               "makes a channel of the held-out data (top face, side faces, force) significantly worse is not "
               "claimed: its gain in one channel is the model-form gap, paid for in another. Nor is a kind whose "
-              "drop does not exceed what the base model itself gains at the ends of its model-form range "
-              "(damping, Poisson's ratio, contact stiffness, material law, alone and together)"
-              + (f": here {diag.model_form['bar']:.0f} (chi2), from {diag.model_form['variant']}."
+              "fit, added to a phantom at an end of the model-form range (damping, Poisson's ratio, contact "
+              "stiffness, material law, alone and together) that explains part of the residual, no longer "
+              "explains its critical value of the held-out data there"
+              + (f" (the range explains up to {diag.model_form['bar']:.0f} (chi2) here, from {diag.model_form['variant']})."
                  if diag.model_form and diag.model_form.get("variant") else "."), "",
               "| round | candidate | chi2 drop: surface | chi2 drop: force | critical | p-value | confidence | claimed |",
               "|---|---|---|---|---|---|---|---|"]

@@ -53,9 +53,14 @@ class CauseReport:
         intervals: a claimed cause's 95 % intervals by parameter, statistical and model-form
             (:func:`core.diagnosis.worlds.parameter_intervals`; empty before they are known).
         model_form_bar: the largest held-out drop of the round's model at the ends of its
-            model-form range, chi2 (a claim had to exceed it; diagnosis.json's
-            ``model_form`` is the last round's), or None when the round needed none (no
-            kind passed Holm's procedure).
+            model-form range, chi2 (diagnosis.json's ``model_form`` is the last round's), or
+            None when the round needed none (no kind passed Holm's procedure).
+        model_form_nested: for a kind that passed Holm's procedure and
+            :func:`core.diagnosis.inference.claim_check`, the nested test in the model-form
+            worlds (:func:`core.diagnosis.rounds.beyond_verdict`): ``{"world": the world that
+            decided (the first that refused, else where the fit explained least), "delta_chi2":
+            the fit's held-out drop added to that world, "passed": bool}``; None when it did
+            not run.
     """
 
     kind: str
@@ -80,6 +85,7 @@ class CauseReport:
     channels: dict = field(default_factory=dict)
     reproduction: dict = field(default_factory=dict)
     model_form_bar: float | None = None
+    model_form_nested: dict | None = None
     intervals: dict = field(default_factory=dict)
 
 
@@ -195,7 +201,8 @@ class Diagnosis:
             "candidates": [
                 {"kind": c.kind, "round": c.round, "delta_chi2": c.delta_chi2, "delta_chi2_field": c.delta_chi2_field,
                  "delta_chi2_force": c.delta_chi2_force, "p_value": c.p_value, "critical": _num(c.critical),
-                 "score": _num(c.score), "significant": c.significant, "channels": c.channels, "reproduction": c.reproduction, "model_form_bar": c.model_form_bar, "explained": c.explained,
+                 "score": _num(c.score), "significant": c.significant, "channels": c.channels, "reproduction": c.reproduction, "model_form_bar": c.model_form_bar,
+                 "model_form_nested": c.model_form_nested, "explained": c.explained,
                  "confidence": c.confidence, "claimed": c.claimed, "parameters": c.parameters,
                  "fit_variables": c.fit_variables}
                 for c in self.candidates

@@ -20,12 +20,12 @@ import numpy as np
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Directions, Evidence, FieldRun, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import HeldOutTest, channel_worsening, reproduction
-from core.diagnosis.nuisance import Nuisance, model_form_drops
+from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check, reproduction
+from core.diagnosis.nuisance import Nuisance, beyond_model_form, model_form_drops
 from core.simulation.effects import FitSpace
 
 __all__ = ["Round", "CandidateEvidence", "channel_masks", "TANGENT_BLOWUP", "trusted_columns", "assess_all", "judge",
-           "model_form_json"]
+           "beyond_verdict", "model_form_json"]
 
 
 @dataclass
@@ -52,6 +52,14 @@ class Round:
                                                 self.r_train, self.r_validation)
         best = max(self._model_form.items(), key=lambda kv: kv[1], default=("", 0.0))
         return best if best[1] > 0 else ("", 0.0)
+
+    def beyond_model_form(self, ev: Evidence, effects: list[dict], critical: float) -> tuple[bool, str, float]:
+        """Whether the fitted ``effects`` still explain held-out data (at least ``critical``,
+        chi2) in every model-form world that explains part of this round's residual
+        (:func:`core.diagnosis.nuisance.beyond_model_form`)."""
+        self.model_form(ev)
+        return beyond_model_form(ev, self.fixed, self.youngs_modulus, self.nuisance, effects,
+                                 self._model_form or {}, critical)
 
     @classmethod
     def build(cls, ev: Evidence, fixed: list, E: float, cfg: DiagnosisConfig, seed: int) -> "Round":
@@ -224,6 +232,32 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
     blocks = rnd.test.blocks_validation
     worse = channel_worsening(e_v, h, channels, blocks, cfg.consistency_alpha, ev.sigma2) if cfg.consistency_alpha > 0 else {}
     return CandidateEvidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
+
+
+def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence) -> tuple[tuple[str, str] | None, dict | None]:
+    """Whether a candidate whose held-out drop passed Holm's procedure is claimed:
+    :func:`core.diagnosis.inference.claim_check` (reproduced at its fitted size, no channel
+    made worse), then the nested test in the model-form worlds (:meth:`Round.beyond_model_form`):
+    "model_form" (answer "cannot tell") when one of them explains its residual.
+
+    Returns:
+        (None or ``(reason, why)`` as ``claim_check``'s, ``{"world", "delta_chi2", "passed"}``
+        of the nested test for :class:`~core.diagnosis.results.CauseReport`
+        ``model_form_nested``, None when it did not run).
+    """
+    verdict = claim_check(e.statistic, e.critical, e.reproduction, e.channels)
+    if verdict is not None:
+        return verdict, None
+    ok, label, t_w = rnd.beyond_model_form(ev, e.fit.effects, e.critical)
+    nested = {"world": label or None, "delta_chi2": t_w if math.isfinite(t_w) else None, "passed": bool(ok)}
+    if ok:
+        return None, nested
+    gain = f"{t_w:.0f} (chi2)" if math.isfinite(t_w) else "nothing (a run diverged)"
+    return ("model_form",
+            f"cannot tell from this data: its fit explained {e.statistic:.0f} (chi2) of the held-out residual, but "
+            f"added to a phantom with {label} (within the model-form gap's plausible range, which explains "
+            f"{rnd._model_form[label]:.0f} of it) the same fit explains {gain} where a claim needs "
+            f"{e.critical:.0f}: the data do not tell this kind from the base model's own form gap"), nested
 
 
 def model_form_json(rnd: Round | None, ev: Evidence) -> dict | None:
