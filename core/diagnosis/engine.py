@@ -66,7 +66,7 @@ import numpy as np
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import detectability, undersized_claims, unobservable, withdraw
-from core.diagnosis.evidence import Evidence, Request, drop_binned_points
+from core.diagnosis.evidence import Evidence, Request
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import holm, holm_adjusted
@@ -75,6 +75,7 @@ from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.rounds import CandidateEvidence, Round, assess_all, beyond_verdict, channel_masks, model_form_json
 from core.diagnosis.selection import choose
 from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
+from core.diagnosis.trials import drop_binned_points
 from core.diagnosis.worlds import absence_within, with_intervals
 from core.diagnosis.youngs import unexcluded_effects, with_untold_kinds, youngs_of_extended
 from core.errors import TissueTwinError

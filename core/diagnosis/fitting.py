@@ -7,8 +7,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.diagnosis.evidence import Directions, Evidence, Spec
+from core.diagnosis.evidence import Evidence, Spec
 from core.diagnosis.nuisance import Nuisance
+from core.diagnosis.trials import Directions
 from core.identification.model_form import ModelFormVariant
 from core.simulation.effects import EFFECT_KINDS, FitSpace
 

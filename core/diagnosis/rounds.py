@@ -18,10 +18,11 @@ from typing import Callable
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Directions, Evidence, FieldRun, Request, Spec
+from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check, reproduction
 from core.diagnosis.nuisance import Nuisance, beyond_model_form, model_form_drops
+from core.diagnosis.trials import Directions, FieldRun
 from core.simulation.effects import FitSpace
 
 __all__ = ["Round", "CandidateEvidence", "channel_masks", "TANGENT_BLOWUP", "trusted_columns", "assess_all", "judge",

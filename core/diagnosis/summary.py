@@ -9,9 +9,10 @@ from typing import Sequence
 import numpy as np
 
 from core.diagnosis.candidates import press_spans
-from core.diagnosis.evidence import Evidence, FieldRun
+from core.diagnosis.evidence import Evidence
 from core.diagnosis.fields import NOISE_GROUPS, PHASES, phase_labels
 from core.diagnosis.fitting import Fit
+from core.diagnosis.trials import FieldRun
 from core.simulation.effects import FitSpace
 from core.preparation import PreparedSession
 __all__ = ["fit_fields", "identifiable", "test_error", "gain_interval", "summary", "palpation"]

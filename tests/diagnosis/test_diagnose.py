@@ -131,15 +131,17 @@ def test_a_diverging_fine_mesh_reference_is_dropped_and_said(no_effect, monkeypa
     from dataclasses import replace
 
     import core.diagnosis.evidence as evidence
+    import core.diagnosis.trials as trials
 
     session, _, _ = no_effect
-    real = evidence.run_field
+    real = trials.run_field
     fine_grid = DiagnosisConfig().fine_grid
 
     def run_field(prepared, item):
         run = real(prepared, item)
         return replace(run, ok=False) if tuple(item.trial.grid) == tuple(fine_grid) else run
 
+    # patched where Evidence looks it up (it is defined in core.diagnosis.trials)
     monkeypatch.setattr(evidence, "run_field", run_field)
     d = diagnose(session, DiagnosisConfig(max_causes=0, detectability=False, fit_youngs=False, n_boot=50))
     data = d.to_json()

@@ -4,8 +4,9 @@ of runs): dropping a run costs a replay, never a different answer."""
 import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.evidence import Evidence, LruCache, _run_bytes, drop_binned_points
+from core.diagnosis.evidence import Evidence, LruCache, _run_bytes
 from core.diagnosis.patches import field_layout
+from core.diagnosis.trials import drop_binned_points
 from core.identification.execution import SerialExecutor
 from core.preparation import prepare_session
 
@@ -61,9 +62,9 @@ def test_the_least_recently_used_run_goes_first():
 
 
 def _binned_entries() -> int:
-    from core.diagnosis import evidence
+    from core.diagnosis import trials
 
-    return len(evidence._BINS)
+    return len(trials._BINS)
 
 
 def test_the_test_stage_can_empty_every_workers_binned_points(small_session):
