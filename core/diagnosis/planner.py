@@ -28,11 +28,12 @@ D-/A-optimal design on the Fisher information of each kind's size; Pukelsheim 20
    each kind's change of the data is simulated in every model-form world (the base model
    with the neo-Hookean law, Poisson's ratio 0.38 or 0.485, damping 0.05 or 0.3 s, a
    softer or stiffer contact) and the test fits it along the replay's signature; the
-   least ``q`` of the replay and the worlds gives the prediction (:func:`_world_q`). What
-   the plan cannot predict is the model-form bar of the data it will record (the held-out
-   drop of the best model-form variant, which a claim must also beat): the prediction is
-   the noise's and the worlds' floor, and the diagnosis of the recorded session states
-   the size that holds.
+   least ``q`` of the replay and the worlds gives the prediction (:func:`_world_q`), as a
+   claim must still explain its critical value in each world that explains part of the
+   residual (:func:`core.diagnosis.nuisance.beyond_model_form`). What the plan cannot
+   predict is the model-form gap of the data it will record: the prediction is the
+   noise's and the worlds' floor, and the diagnosis of the recorded session states the
+   size that holds.
 
 The plan's path is written in the robot frame (the session's calibration), as a
 ``kinematics.csv`` of the session format that a dVRK script can replay, with a
