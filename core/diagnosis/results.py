@@ -165,8 +165,10 @@ class Diagnosis:
     notes: tuple = ()
     """What the diagnosis had to change from its configuration, and why (diagnosis.json ``notes``)."""
     model_form: dict | None = None
-    """The last round's model-form bar: {"drops": {variant: held-out chi2 drop}, "variant",
-    "bar"} (:func:`core.diagnosis.nuisance.model_form_drops`); a claim had to exceed "bar"."""
+    """The last round's model-form worlds: {"drops": {variant: held-out chi2 drop}, "variant",
+    "bar"} (:func:`core.diagnosis.nuisance.model_form_drops`; "bar" the largest drop), when
+    they were simulated (a kind of that round passed Holm's procedure and was held to them,
+    :func:`core.diagnosis.nuisance.beyond_model_form`); else None."""
 
     def answers(self) -> dict:
         """{kind: one of :data:`ANSWERS`} for every kind with a detectability statement."""
@@ -217,7 +219,8 @@ class Diagnosis:
                       + ") beside the base model's nuisances (" + ", ".join(self.nuisances)
                       + "); a kind is claimed when its held-out chi-square drop passes Holm's procedure over "
                         "its null distribution from a wild block bootstrap of the session's own residuals and "
-                        "exceeds the drop of the base model at the ends of its model-form range (model_form)",
+                        "its fit, added to each phantom at an end of the model-form range that explains part of "
+                        "the residual (model_form), still explains its critical value there (model_form_nested)",
             "claims": {"false_claim_rate": cfg.alpha, "meaning": "per selection round, family-wise over the candidate "
                        "kinds: on a session without any effect, the chance that anything is claimed",
                        "null_replicates": cfg.n_null, "block_s": cfg.block},
