@@ -378,11 +378,11 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     kinds and its searches (from the round's fit of it when it was tested, else from a
     fit along its signature alone). The model-form gap enters through the worlds
     (:func:`_world_min_size`: the kind's change simulated in each, the weakest kept), as
-    a claim below the best variant's drop must still explain its critical value in each
-    world (:func:`core.diagnosis.rounds.beyond_verdict`); until 2026-11-29 the bar was the
-    best variant's drop itself, which on a dome with force columns (60064 chi2, set by the
-    force channel) left a hidden stiff inclusion "cannot tell" at every ratio. ``progress(i, kind)``, when given, is
-    called before the i-th kind.
+    a claim must still explain its critical value in each world that explains part of the
+    residual (:func:`core.diagnosis.rounds.beyond_verdict`); until 2026-11-29 the bar was the
+    best world's drop itself (on a dome with force columns 7330 chi2, mostly the whole
+    phantom's force, against a hidden stiff inclusion fit's 4379). ``progress(i, kind)``,
+    when given, is called before the i-th kind.
     """
     out = {}
     in_group = {k for g in confounded for k in g}

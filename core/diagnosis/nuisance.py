@@ -342,15 +342,11 @@ def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisa
         return {}
     specs = [Spec(tuple(fixed), float(E), **fields) for _, fields in ends]
     trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
-    e_v = nuis.held_out(r_validation, r_train)
-    before = float(e_v @ e_v)
     out = {}
     for (label, _), tr, va in zip(ends, trains, valids):
-        r_t, r_v = ev.vector(tr), ev.vector(va)
-        if not (np.all(np.isfinite(r_t)) and np.all(np.isfinite(r_v))):
-            continue
-        h = nuis.held_out(r_v, r_t)
-        out[label] = (before - float(h @ h)) / ev.sigma2
+        drop = nuis.held_out_drop((r_train, r_validation), (ev.vector(tr), ev.vector(va)))
+        if math.isfinite(drop):
+            out[label] = drop / ev.sigma2
     return out
 
 
@@ -369,8 +365,8 @@ def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     In every such world the candidate's fitted ``effects`` are added to the model,
     unchanged (not refitted there, which could only gain), and the held-out drop they
     bring to the world is ``T_w = (|h_W|^2 - |h_{W+c}|^2) / sigma^2`` with the bounded
-    nuisances refitted on train, as :func:`model_form_drops` judges the world itself (the
-    world's own runs are those, from the cache). The candidate passes when ``T_w >=
+    nuisances refitted on train (:meth:`Nuisance.held_out_drop`), as :func:`model_form_drops`
+    judges the world itself (the world's own runs are those, from the cache while it holds them). The candidate passes when ``T_w >=
     critical`` (its own null's critical value) in every such world. A residual that one of
     the worlds explains leaves the candidate nothing there (a damping gap taken up by a
     Maxwell arm, a soft contact's shallow dent taken up by a downward robot offset); a
@@ -397,7 +393,7 @@ def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
         candidate's drop in that world, chi2; -inf where a run diverged).
     """
     ends = dict(model_form_ends(ev))
-    worlds = [label for label, d in sorted(drops.items(), key=lambda kv: -kv[1]) if d > 0 and label in ends]
+    worlds = [label for label, d in sorted(drops.items(), key=lambda kv: -kv[1]) if d > 0]
     if not worlds:
         return True, "", math.inf
     least = ("", math.inf)
@@ -409,12 +405,8 @@ def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
         trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
         n = len(chunk)
         for j, label in enumerate(chunk):
-            r = [ev.vector(trains[j]), ev.vector(valids[j]), ev.vector(trains[n + j]), ev.vector(valids[n + j])]
-            if not all(np.all(np.isfinite(v)) for v in r):
-                t_w = -math.inf
-            else:
-                h0, h1 = nuis.held_out(r[1], r[0]), nuis.held_out(r[3], r[2])
-                t_w = float(h0 @ h0 - h1 @ h1) / ev.sigma2
+            t_w = nuis.held_out_drop((ev.vector(trains[j]), ev.vector(valids[j])),
+                                     (ev.vector(trains[n + j]), ev.vector(valids[n + j]))) / ev.sigma2
             if t_w < critical:
                 return False, label, t_w
             if t_w < least[1]:
@@ -498,6 +490,17 @@ class Nuisance:
         if self.size == 0 or not np.all(np.isfinite(r_validation)):
             return r_validation
         return r_validation - self.validation @ self.coefficients(r_train)
+
+    def held_out_drop(self, before: tuple[np.ndarray, np.ndarray], after: tuple[np.ndarray, np.ndarray]) -> float:
+        """``|h(before)|^2 - |h(after)|^2`` (units of the residual vectors squared; divide by
+        sigma^2 for chi2): the held-out drop of a change of the model, each model's nuisance
+        part fitted on its train residual (:meth:`held_out`). ``before`` and ``after`` are
+        (train, validation) residual vectors; -inf where one of them is not finite (a run
+        that diverged)."""
+        if not all(np.all(np.isfinite(v)) for v in (*before, *after)):
+            return -math.inf
+        h0, h1 = self.held_out(before[1], before[0]), self.held_out(after[1], after[0])
+        return float(h0 @ h0) - float(h1 @ h1)
 
     def active(self, r_train: np.ndarray) -> "Nuisance":
         """The directions whose coefficients are inside their bounds at the fit of

@@ -54,7 +54,8 @@ class CauseReport:
             (:func:`core.diagnosis.worlds.parameter_intervals`; empty before they are known).
         model_form_bar: the largest held-out drop of the round's model at the ends of its
             model-form range, chi2 (diagnosis.json's ``model_form`` is the last round's), or
-            None when the round needed none (no kind passed Holm's procedure).
+            None when its worlds were not simulated (no kind of the round reached the nested
+            test: none passed Holm's procedure and :func:`core.diagnosis.inference.claim_check`).
         model_form_nested: for a kind that passed Holm's procedure and
             :func:`core.diagnosis.inference.claim_check`, the nested test in the model-form
             worlds (:func:`core.diagnosis.rounds.beyond_verdict`): ``{"world": the world that

@@ -54,14 +54,6 @@ class Round:
         best = max(self._model_form.items(), key=lambda kv: kv[1], default=("", 0.0))
         return best if best[1] > 0 else ("", 0.0)
 
-    def beyond_model_form(self, ev: Evidence, effects: list[dict], critical: float) -> tuple[bool, str, float]:
-        """Whether the fitted ``effects`` still explain held-out data (at least ``critical``,
-        chi2) in every model-form world that explains part of this round's residual
-        (:func:`core.diagnosis.nuisance.beyond_model_form`)."""
-        self.model_form(ev)
-        return beyond_model_form(ev, self.fixed, self.youngs_modulus, self.nuisance, effects,
-                                 self._model_form or {}, critical)
-
     @classmethod
     def build(cls, ev: Evidence, fixed: list, E: float, cfg: DiagnosisConfig, seed: int) -> "Round":
         nuis = Nuisance.build(ev, fixed, E, cfg.nuisances)
@@ -238,7 +230,8 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
 def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence) -> tuple[tuple[str, str] | None, dict | None]:
     """Whether a candidate whose held-out drop passed Holm's procedure is claimed:
     :func:`core.diagnosis.inference.claim_check` (reproduced at its fitted size, no channel
-    made worse), then the nested test in the model-form worlds (:meth:`Round.beyond_model_form`):
+    made worse), then the nested test in the model-form worlds
+    (:func:`core.diagnosis.nuisance.beyond_model_form`):
     "model_form" (answer "cannot tell") when one of them explains its residual.
 
     Returns:
@@ -249,7 +242,9 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence) -> tuple[tupl
     verdict = claim_check(e.statistic, e.critical, e.reproduction, e.channels)
     if verdict is not None:
         return verdict, None
-    ok, label, t_w = rnd.beyond_model_form(ev, e.fit.effects, e.critical)
+    rnd.model_form(ev)  # the worlds' drops, simulated once per round when first asked
+    ok, label, t_w = beyond_model_form(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, e.fit.effects,
+                                       rnd._model_form or {}, e.critical)
     nested = {"world": label or None, "delta_chi2": t_w if math.isfinite(t_w) else None, "passed": bool(ok)}
     if ok:
         return None, nested
