@@ -209,6 +209,8 @@ class JobRunner:
         import dask
         from distributed import Client, LocalCluster
 
+        from core.identification.execution import LOCAL_CLUSTER_CONFIG
+
         address = self.settings.scheduler
         if address:
             self.client = Client(address)
@@ -216,7 +218,8 @@ class JobRunner:
             return
         # non-daemonic workers: jobs may start processes (the virtual lab's simulation pool);
         # workers that ignore Ctrl-C: the server alone handles it and closes the cluster
-        with dask.config.set({"distributed.worker.daemon": False}), _sigint_ignored():
+        # no Active Memory Manager (LOCAL_CLUSTER_CONFIG): a job's broadcast session stays on every worker
+        with dask.config.set({"distributed.worker.daemon": False, **LOCAL_CLUSTER_CONFIG}), _sigint_ignored():
             self.cluster = LocalCluster(
                 n_workers=self.settings.workers, threads_per_worker=1, processes=True,
                 # CRITICAL: under load a worker's last heartbeat can race the scheduler's
