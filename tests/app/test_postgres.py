@@ -254,7 +254,8 @@ class DaskCluster:
         bindir = Path(sys.executable).parent
         self.port = _free_port()
         self.address = f"tcp://127.0.0.1:{self.port}"
-        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False", "OMP_NUM_THREADS": "1",
+        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False",
+               "DASK_DISTRIBUTED__SCHEDULER__ACTIVE_MEMORY_MANAGER__START": "False", "OMP_NUM_THREADS": "1",
                "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
         self.log = open(logdir / "dask.log", "w")
         self.procs = [subprocess.Popen([bindir / "dask", "scheduler", "--host", "127.0.0.1", "--port", str(self.port),
