@@ -389,7 +389,12 @@ def sphere_contacts(x, triangles, sub, centre, radius):
             dist = np.sqrt(dv @ dv)
             if dist >= radius:
                 continue
-            if (centre - q) @ fn < 0.0:  # centre behind the face plane: push inwards
+            # the centre behind the face plane with its closest point inside the face: it has
+            # passed through the surface, push inwards; with the closest point on an edge or a
+            # corner the plane says nothing (next to a curved or dented surface a neighbour's
+            # plane passes over a centre still outside, and took it as 5 mm deep: see
+            # core.simulation.contact)
+            if (centre - q) @ fn < 0.0 and w[0] > 0.0 and w[1] > 0.0 and w[2] > 0.0:
                 N[m] = -fn
                 D[m] = radius + dist
             else:

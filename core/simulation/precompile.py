@@ -12,17 +12,61 @@ sensitivities, and a static equilibrium under a body force. The results are disc
 
 from __future__ import annotations
 
+import hashlib
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 from numba.core.errors import NumbaPerformanceWarning
 
-__all__ = ["compile_kernels"]
+__all__ = ["compile_kernels", "clear_stale_cache"]
+
+STAMP = Path(__file__).resolve().parents[1] / "__pycache__" / "numba-sources.sha256"
+"""Digest of the compiled modules' sources at the last :func:`compile_kernels` (beside
+Python's own caches, ignored by git)."""
+
+
+def _sources(root: Path) -> list[Path]:
+    """The modules under ``root`` with numba kernels cached on disk (this one aside)."""
+    here = Path(__file__).resolve()
+    return sorted(p for p in root.rglob("*.py") if p.resolve() != here and "cache=True" in p.read_text(encoding="utf-8"))
+
+
+def clear_stale_cache(root: Path | None = None, stamp: Path | None = None) -> bool:
+    """Delete numba's on-disk cache of ``core`` when any compiled module's source changed
+    since the last :func:`compile_kernels`.
+
+    numba keys a kernel's cache by its own file's modification time, not by the kernels it
+    calls from other files: after a change to :func:`core.simulation.kernels.sphere_contacts`
+    alone, the compiled time loop (:func:`core.simulation.stepper.advance`, which calls it)
+    kept running the old contact geometry from its cache (measured 2026-11-29: a dome
+    replay's forces unchanged until the cache was deleted).
+
+    Args:
+        root: the package whose modules and caches are checked (default ``core``).
+        stamp: where the digest is kept (default :data:`STAMP`).
+
+    Returns:
+        True when the cache was deleted (or there was no record of it).
+    """
+    root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
+    stamp = Path(stamp) if stamp is not None else STAMP
+    digest = hashlib.sha256(b"".join(p.read_bytes() for p in _sources(root))).hexdigest()
+    if stamp.exists() and stamp.read_text().strip() == digest:
+        return False
+    for f in list(root.rglob("__pycache__/*.nbi")) + list(root.rglob("__pycache__/*.nbc")):
+        f.unlink(missing_ok=True)
+    stamp.parent.mkdir(parents=True, exist_ok=True)
+    stamp.write_text(digest + "\n")
+    return True
 
 
 def compile_kernels() -> float:
     """Step tiny models through every compiled path so numba writes its cache.
+
+    The cache of kernels whose sources (or their callees') changed is deleted first
+    (:func:`clear_stale_cache`).
 
     Returns:
         The wall time it took, s (a few seconds when the cache is already there).
@@ -33,6 +77,7 @@ def compile_kernels() -> float:
     from core.simulation import ProbePath, box_mesh
 
     t0 = time.perf_counter()
+    clear_stale_cache()
     size = (0.03, 0.02, 0.02)
     mesh = box_mesh(size, (4, 3, 3))
     # a press, a slide and a release over the middle of the top: contact on and off, sliding

@@ -479,11 +479,11 @@ def contact_geometry_tangent(x, dx, centre, dcentre, cnodes, sub, csub, cWs, cN,
         q = w[0] * a + w[1] * b + w[2] * cc
         d = q - centre
         dist = math.sqrt(d @ d)
-        behind = (centre - q) @ fn < 0.0
         nz = 0
         for j in range(3):
             if w[j] != 0.0:
                 nz += 1
+        behind = (centre - q) @ fn < 0.0 and nz == 3  # as the forward kernel: inside the face only
         pts = (a, b, cc)
         for t in range(p):
             da = S[0, 0] * dx[t, ia] + S[0, 1] * dx[t, ib] + S[0, 2] * dx[t, ic]

@@ -40,3 +40,28 @@ def test_after_precompile_a_replay_and_its_sensitivities_compile_nothing(capsys)
     assert simulate_sensitivities(build, theta, path, 0.005, frames, scales=[0.02, 1.0]).result.ok
     after = _signatures()
     assert {k: v for k, v in after.items() if v != before[k]} == {}
+
+
+def test_a_changed_kernel_source_clears_the_whole_numba_cache(tmp_path):
+    """numba keys a cache by its own file only: a caller's cached kernel kept a changed
+    callee's old code. The digest of every cached module's source decides instead."""
+    from core.simulation.precompile import clear_stale_cache
+
+    pkg = tmp_path / "pkg"
+    (pkg / "__pycache__").mkdir(parents=True)
+    callee, caller = pkg / "callee.py", pkg / "caller.py"
+    callee.write_text("@njit(cache=True)\ndef f(x):\n    return x + 1\n")
+    caller.write_text("@njit(cache=True)\ndef g(x):\n    return f(x)\n")
+    stamp = tmp_path / "stamp"
+    compiled = [pkg / "__pycache__" / "caller.g-3.py311.1.nbc", pkg / "__pycache__" / "caller.g-3.py311.nbi"]
+
+    def cache():
+        for f in compiled:
+            f.write_bytes(b"x")
+
+    cache()
+    assert clear_stale_cache(pkg, stamp) and not any(f.exists() for f in compiled)  # no record yet
+    cache()
+    assert not clear_stale_cache(pkg, stamp) and all(f.exists() for f in compiled)  # unchanged: kept
+    callee.write_text("@njit(cache=True)\ndef f(x):\n    return x + 2\n")  # the callee alone changes
+    assert clear_stale_cache(pkg, stamp) and not any(f.exists() for f in compiled)
