@@ -22,7 +22,7 @@ the worker that still holds it rather than pay the transfer, and the other worke
 Measured (2026-11-29, 2 workers): two 0.5 s trials over a 96 MB broadcast object, 2.5 s
 apart, ran on one worker 19 times in 20 (1.1 s instead of 0.54 s); in a 4 x 12 s diagnosis
 two 10.7 s fine-grid trials ran one after the other (21.6 s; its joint refit with E took
-44 s, 35 s with this setting). A scheduler given by address keeps its own settings: start it
+43.9 s, 34.8 s with this setting). A scheduler given by address keeps its own settings: start it
 with ``DASK_DISTRIBUTED__SCHEDULER__ACTIVE_MEMORY_MANAGER__START=False``."""
 
 Progress = Callable[[int, int], None]
