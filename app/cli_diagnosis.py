@@ -14,7 +14,7 @@ def cmd_diagnose(args) -> int:
 
     config = DiagnosisConfig(grid=tuple(args.grid), fit_youngs=not args.no_youngs, refine_mesh=not args.no_mesh_refinement,
                              use_force=False if args.no_force else None, segments=args.segments,
-                             element_size=args.element_size)
+                             element_size=args.element_size, law=args.law)
     with executor(args.scheduler, workers=args.workers, serial=args.serial) as ex, _progress(f"diagnosing {Path(args.session).name}") as cb:
         if args.network:
             diag = _diagnose_with_network(args, config, ex, cb)
@@ -54,6 +54,8 @@ def cmd_diagnose(args) -> int:
                       f"extended {fz['extended_test_rms_N'] * 1e3:.1f} mN (gain {100 * fz['gain']:.1f} %)")
     else:
         console.print(f"probe force: {diag.force_note}")
+    for note in diag.notes:
+        console.print(f"note: {note}")
     repeated = f" ({diag.simulations_repeated} of runs the cache had dropped)" if diag.simulations_repeated else ""
     print(f"{diag.simulations} simulations{repeated} in {diag.timings['total']:.0f} s; "
           f"wrote {out}/diagnosis.json and {out}/report.md")
@@ -125,6 +127,7 @@ def _diagnose_with_network(args, config, ex, cb):
 def register(sub) -> None:
     """Add the ``diagnose`` subcommand to the ``tissuetwin`` parser's subparsers."""
     from app.cli import _add_execution_options
+    from core.simulation.model import LAWS
 
     p = sub.add_parser("diagnose", help="name what the simulation lacks, extend the model, measure the gain")
     p.add_argument("session")
@@ -134,6 +137,9 @@ def register(sub) -> None:
     p.add_argument("--element-size", type=float, default=None, metavar="M",
                    help="target element size of a phantom given by phantom.stl, m (default: about the paper's 325 "
                         "nodes; the fine mesh halves it)")
+    p.add_argument("--law", choices=LAWS, default="corotational",
+                   help="material law of the replay (default the paper's corotational linear; stable_neo_hookean "
+                        "resists the element inversion of deep presses)")
     p.add_argument("--no-youngs", action="store_true", help="keep E at 5e3 Pa instead of fitting it with the claimed causes")
     p.add_argument("--no-mesh-refinement", action="store_true", help="fit E on the replay grid only")
     p.add_argument("--no-force", action="store_true",

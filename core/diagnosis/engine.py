@@ -164,6 +164,7 @@ def diagnose_prepared(
     all_base = base["train"] + base["validation"]
     if not all(r.ok for r in all_base):
         raise TissueTwinError(f"{prepared.path}: the base model diverged at E = {cfg.youngs_modulus:g} Pa")
+    notes += inversion_notes(all_base, cfg.law)
     noise_runs = (ev.runs([[]], "train", fine=True)[0] + ev.runs([[]], "validation", fine=True)[0]) if cfg.fine_grid else all_base
     ss = np.sum([r.ss for r in noise_runs], axis=0)
     dof = np.sum([r.dof for r in noise_runs], axis=0)
@@ -404,3 +405,16 @@ def diagnose_prepared(
         force=force, force_note=ev.force_note, detectability=det, palpation=palp, nuisances=nuisance_names,
         notes=tuple(notes), model_form=model_form,
     )
+
+
+def inversion_notes(runs, law: str) -> list[str]:
+    """What to tell when the base model's replay turned elements inside out: ``runs`` its
+    :class:`core.diagnosis.trials.FieldRun` of the train and validation sequences."""
+    bad = [f"{r.sequence} ({r.inverted})" for r in runs if r.inverted > 0]
+    if not bad:
+        return []
+    fix = ("replay with the stable neo-Hookean law (--law stable_neo_hookean), which resists inversion, or press "
+           "less deep" if law == "corotational" else "press less deep or mesh finer (--element-size)")
+    return [f"the replay turned tetrahedra inside out under the probe on {', '.join(bad)} (the most at once): "
+            f"the {law} law's stress and probe force there are not physical, and E and the causes fitted to "
+            f"them carry that; {fix}"]

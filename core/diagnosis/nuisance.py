@@ -61,7 +61,20 @@ VARIANTS: dict[str, dict] = {
     "damping": {"simulation": (("rayleigh_stiffness", 0.2),)},
     "contact": {"simulation": (("contact_stiffness_per_modulus", 2e4),)},
 }
-"""Model-form variants of the base model whose change of the residual is a nuisance direction."""
+"""Model-form variants of the base model whose change of the residual is a nuisance direction
+(the law's is the other law when the base model is itself replayed with this one: see
+:func:`variant`)."""
+
+
+def variant(name: str, cfg) -> dict:
+    """The Spec fields of model-form variant ``name`` of :data:`VARIANTS` for a base model of
+    ``cfg`` (a :class:`core.diagnosis.config.DiagnosisConfig`): as listed, except the law's,
+    which is the corotational law when the base model already uses the stable neo-Hookean
+    one (a variant equal to the base would be no direction at all)."""
+    change = dict(VARIANTS[name])
+    if "law" in change and change["law"] == getattr(cfg, "law", "corotational"):
+        change["law"] = "corotational"
+    return change
 
 YOUNGS_STEP = 0.02
 """log10 step of Young's modulus of the ``youngs`` direction."""
@@ -199,7 +212,7 @@ def nuisance_columns(ev: Evidence, role: str, fixed: Sequence[dict], E: float,
     specs, labels = [], []
     for name in names:
         if name in VARIANTS:
-            specs.append(Spec(tuple(fixed), float(E), **VARIANTS[name]))
+            specs.append(Spec(tuple(fixed), float(E), **variant(name, ev.cfg)))
             labels.append(name)
         elif name == "youngs" and (ev.use_force or any(e["kind"] in ("gravity", "base_compliance") for e in fixed)):
             specs.append(Spec(tuple(fixed), float(E) * 10.0 ** YOUNGS_STEP))
@@ -247,9 +260,10 @@ def _variant_ends(ev: Evidence) -> dict[str, list[tuple[str, dict]]]:
 
     sim0 = SimulationConfig()
     out: dict[str, list[tuple[str, dict]]] = {}
-    for name, change in VARIANTS.items():
+    for name in VARIANTS:
         if name not in ev.cfg.nuisances:
             continue
+        change = variant(name, ev.cfg)
         lo, hi = BOUNDS[name]
         if "law" in change:
             out[name] = [(f"law {change['law']}", dict(change))]

@@ -23,7 +23,8 @@ from core.diagnosis.fields import FieldLayout, frame_bins, residual_field, resid
 from core.identification.trials import Trial
 from core.simulation import SimulationConfig
 from core.preparation import PreparedSession, release_pages
-from core.simulation.replay import build_replay_model, frame_errors
+from core.simulation.fem import inverted_elements
+from core.simulation.replay import build_replay_model, frame_errors, replay_mesh
 from core.simulation.effects import FitSpace
 from core.simulation.sensitivity import simulate_sensitivities
 from core.simulation.solver import simulate
@@ -126,6 +127,7 @@ class FieldRun:
     force: np.ndarray
     youngs_modulus: float
     clock_offset: float = 0.0
+    inverted: int = 0
     jac_field: np.ndarray | None = None
     """(p, F, B) d field / d theta along the trial's directions (None without them), m per unit."""
     jac_force: np.ndarray | None = None
@@ -177,6 +179,13 @@ def _clock_offset(effects) -> float:
     return sum(float(e["offset"]) for e in effects if e["kind"] == "time_offset")
 
 
+def _inverted(prepared: PreparedSession, t: Trial, positions: np.ndarray) -> int:
+    """The most elements of ``t``'s replayed mesh inverted at once over ``positions``."""
+    mesh = replay_mesh(prepared, t.grid, t.element_size)
+    counts = inverted_elements(mesh.nodes, mesh.tets, positions)
+    return int(counts.max()) if counts.size else 0
+
+
 def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
     """Replay ``item.trial`` (a fresh model) and measure its residual field (worker
     function); with ``item.directions``, differentiate it along them too."""
@@ -222,7 +231,8 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
         means, _ = frame_errors(sim.positions, shape, seq.clouds, distances=False)
         sums = means * n  # NaN where the frame diverged
     run = FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
-                   np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects))
+                   np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects),
+                   inverted=_inverted(prepared, t, sim.positions))
     if jac is not None:
         dpos, dforce, d_E, d_off = jac
         dfield = residual_field_tangent(sim.positions, dpos, shape, item.layout, pts, bins, counts)

@@ -277,3 +277,33 @@ def rotate_stress(R: np.ndarray, S: np.ndarray) -> np.ndarray:
 def check_material(youngs_modulus: float, poisson_ratio: float) -> None:
     """Raise SimulationError for non-physical parameters (see :func:`lame_parameters`)."""
     lame_parameters(youngs_modulus, poisson_ratio)
+
+
+def inverted_elements(nodes: np.ndarray, tets: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Tetrahedra turned inside out, per frame: (F,) int64 counts of the elements whose
+    signed volume at ``positions`` has lost the sign (or all of the size) it has at rest.
+
+    An inverted element's stress is not physical in the corotational linear law (it has no
+    resistance to inversion; the stable neo-Hookean law of Smith et al. 2018 does): measured
+    on a lab dome pressed 6 mm over a stiff spot with a 5 mm sphere, the 1003-node replay
+    turned elements inside out under the probe in 19-67 of 180 frames at every E, and one
+    left inverted after a press blew up as the probe left (40 elements, a 9 N force spike
+    in a 1 N press); the stable neo-Hookean replay inverted none of them.
+
+    Args:
+        nodes: (N, 3) rest positions, m. tets: (E, 4) int node indices.
+        positions: (F, N, 3) or (N, 3) positions, m (NaN frames count 0).
+
+    Returns:
+        (F,) int64 (a scalar array for a single (N, 3) frame).
+    """
+    T = np.asarray(tets)
+
+    def volumes(x):
+        a, b, c, d = (x[..., T[:, k], :] for k in range(4))
+        return np.einsum("...ij,...ij->...i", np.cross(b - a, c - a), d - a)
+
+    rest = volumes(np.asarray(nodes, dtype=np.float64))
+    with np.errstate(invalid="ignore"):
+        v = volumes(np.asarray(positions, dtype=np.float64)) * np.sign(rest)
+        return np.sum(v <= 1e-3 * np.abs(rest), axis=-1).astype(np.int64)

@@ -95,3 +95,16 @@ def test_the_fine_mesh_of_a_phantom_stl_is_named_by_its_element_size():
     assert label == "the finer mesh (3.5 mm elements)"
     assert fields == {"simulation": (("dt", cfg.fine_fit_dt),)}
     assert mesh_world(SimpleNamespace(cfg=replace(cfg, nuisances=tuple(n for n in cfg.nuisances if n != "mesh")))) is None
+
+
+def test_the_law_world_is_the_other_law_of_the_base_model():
+    """A base model replayed with the stable neo-Hookean law (``--law``, against the
+    corotational law's element inversion under deep presses) is held to the corotational
+    law's world, not to a copy of itself; the other worlds do not change."""
+    cfg = DiagnosisConfig()
+    worlds = dict(model_form_worlds(SimpleNamespace(cfg=cfg)))
+    assert worlds["law stable_neo_hookean"] == {"law": "stable_neo_hookean"}
+    nh = dict(model_form_worlds(SimpleNamespace(cfg=replace(cfg, law="stable_neo_hookean"))))
+    assert nh.pop("law corotational") == {"law": "corotational"} and "law stable_neo_hookean" not in nh
+    worlds.pop("law stable_neo_hookean")
+    assert nh == worlds and len(nh) == 6

@@ -89,3 +89,35 @@ def test_stiff_contact_holds_without_chatter_and_barely_sinks():
         pen = find_contacts(state.x, mesh.surface_triangles, c, 0.005).depth
         assert pen.size and pen.max() < 5e-5
     assert abs(holds[1 / 120] - holds[1 / 960]) < 0.02 * abs(holds[1 / 960])
+
+
+def test_a_deep_press_inverts_corotational_elements_and_not_neo_hookean_ones():
+    """The corotational linear law has no resistance to inversion: pressed half the box's
+    height (18 mm of 36 mm) by the 5 mm sphere, the 13x5x5 replay turns elements under the
+    probe inside out (measured 9 at once, in 25 of 81 frames); at 6 mm it turns none, and
+    the stable neo-Hookean law turns none at 18 mm either. A diagnosis says so in its notes."""
+    from types import SimpleNamespace
+
+    from core.diagnosis.engine import inversion_notes
+    from core.simulation.fem import inverted_elements
+
+    mesh = box_mesh(SIZE, (13, 5, 5))
+    out = np.linspace(0.0, 4.0, 81)
+    counts = {}
+    for law, depth, options in (("corotational", 0.006, {}), ("corotational", 0.018, {}),
+                                ("stable_neo_hookean", 0.018, {"newton_iterations": 2})):
+        model = build_model(mesh, 0.10401, Material(5000.0, 0.44, law=law), SimulationConfig(**options))
+        res = simulate(model, _poke(depth), 0.005, out)
+        assert res.ok
+        counts[law, depth] = inverted_elements(mesh.nodes, mesh.tets, res.positions)
+    assert counts["corotational", 0.006].max() == 0 and counts["stable_neo_hookean", 0.018].max() == 0
+    assert counts["corotational", 0.018].max() >= 3
+    assert counts["corotational", 0.018][0] == 0 and counts["corotational", 0.018][-1] == 0  # before and after the press
+    # a single frame, and a diverged (NaN) frame, count none
+    assert inverted_elements(mesh.nodes, mesh.tets, mesh.nodes) == 0
+    assert inverted_elements(mesh.nodes, mesh.tets, np.full((1,) + mesh.nodes.shape, np.nan))[0] == 0
+    runs = [SimpleNamespace(sequence="seq02", inverted=int(counts["corotational", 0.018].max())),
+            SimpleNamespace(sequence="seq00", inverted=0)]
+    note, = inversion_notes(runs, "corotational")
+    assert "seq02" in note and "seq00" not in note and "--law stable_neo_hookean" in note
+    assert inversion_notes(runs[1:], "corotational") == []
