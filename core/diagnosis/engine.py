@@ -410,11 +410,14 @@ def diagnose_prepared(
 def inversion_notes(runs, law: str) -> list[str]:
     """What to tell when the base model's replay turned elements inside out: ``runs`` its
     :class:`core.diagnosis.trials.FieldRun` of the train and validation sequences."""
-    bad = [f"{r.sequence} ({r.inverted})" for r in runs if r.inverted > 0]
+    bad = [f"{r.sequence} (at most {r.inverted} at once)" for r in runs if r.inverted > 0]
     if not bad:
         return []
-    fix = ("replay with the stable neo-Hookean law (--law stable_neo_hookean), which resists inversion, or press "
-           "less deep" if law == "corotational" else "press less deep or mesh finer (--element-size)")
-    return [f"the replay turned tetrahedra inside out under the probe on {', '.join(bad)} (the most at once): "
-            f"the {law} law's stress and probe force there are not physical, and E and the causes fitted to "
-            f"them carry that; {fix}"]
+    if law == "corotational":  # no resistance to inversion
+        why = "the corotational law's stress and probe force there are not physical"
+        fix = "replay with the stable neo-Hookean law (--law stable_neo_hookean), which resists inversion, or press less deep"
+    else:
+        why = "the replay's mesh is too coarse for these presses"
+        fix = "mesh finer (--element-size; --grid for a box) or press less deep"
+    return [f"the replay turned tetrahedra inside out under the probe on {', '.join(bad)}: {why}, and E and "
+            f"the causes fitted to them carry that; {fix}"]

@@ -121,3 +121,5 @@ def test_a_deep_press_inverts_corotational_elements_and_not_neo_hookean_ones():
     note, = inversion_notes(runs, "corotational")
     assert "seq02" in note and "seq00" not in note and "--law stable_neo_hookean" in note
     assert inversion_notes(runs[1:], "corotational") == []
+    neo, = inversion_notes(runs, "stable_neo_hookean")
+    assert "seq02 (at most" in neo and "--element-size" in neo and "--law" not in neo
