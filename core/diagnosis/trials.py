@@ -179,9 +179,8 @@ def _clock_offset(effects) -> float:
     return sum(float(e["offset"]) for e in effects if e["kind"] == "time_offset")
 
 
-def _inverted(prepared: PreparedSession, t: Trial, positions: np.ndarray) -> int:
-    """The most elements of ``t``'s replayed mesh inverted at once over ``positions``."""
-    mesh = replay_mesh(prepared, t.grid, t.element_size)
+def _inverted(mesh, positions: np.ndarray) -> int:
+    """The most elements of the replayed ``mesh`` inverted at once over ``positions``."""
     counts = inverted_elements(mesh.nodes, mesh.tets, positions)
     return int(counts.max()) if counts.size else 0
 
@@ -232,7 +231,8 @@ def run_field(prepared: PreparedSession, item: FieldTrial) -> FieldRun:
         sums = means * n  # NaN where the frame diverged
     run = FieldRun(t.sequence, bool(sim.ok), fld, ss, dof, sums, n, np.asarray(sim.probe_centres),
                    np.asarray(sim.contact_force, dtype=np.float64), float(t.youngs_modulus), _clock_offset(t.effects),
-                   inverted=_inverted(prepared, t, sim.positions))
+                   inverted=_inverted(model.mesh if item.directions is None  # the replay's own mesh, built once
+                                      else replay_mesh(prepared, t.grid, t.element_size), sim.positions))
     if jac is not None:
         dpos, dforce, d_E, d_off = jac
         dfield = residual_field_tangent(sim.positions, dpos, shape, item.layout, pts, bins, counts)

@@ -286,9 +286,11 @@ def inverted_elements(nodes: np.ndarray, tets: np.ndarray, positions: np.ndarray
     An inverted element's stress is not physical in the corotational linear law (it has no
     resistance to inversion; the stable neo-Hookean law of Smith et al. 2018 does): measured
     on a lab dome pressed 6 mm over a stiff spot with a 5 mm sphere, the 1003-node replay
-    turned elements inside out under the probe in 19-67 of 180 frames at every E, and one
-    left inverted after a press blew up as the probe left (40 elements, a 9 N force spike
-    in a 1 N press); the stable neo-Hookean replay inverted none of them.
+    without an inclusion turned elements inside out under the probe in 19-67 of 180 frames
+    at 5 and 14 kPa, and (with a small inclusion) one left inverted after a press blew up
+    as the probe left (40 elements, a 9 N force spike in a 1 N press); the stable
+    neo-Hookean replay without an inclusion inverted none (with the lab's stiff inclusion
+    under a 2 mm cover, some).
 
     Args:
         nodes: (N, 3) rest positions, m. tets: (E, 4) int node indices.

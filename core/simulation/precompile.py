@@ -27,10 +27,12 @@ STAMP = Path(__file__).resolve().parents[1] / "__pycache__" / "numba-sources.sha
 Python's own caches, ignored by git)."""
 
 
-def _sources(root: Path) -> list[Path]:
-    """The modules under ``root`` with numba kernels cached on disk (this one aside)."""
+def _sources(root: Path) -> list[bytes]:
+    """The sources of the modules under ``root`` with numba kernels cached on disk (this one
+    aside), in path order, each read once."""
     here = Path(__file__).resolve()
-    return sorted(p for p in root.rglob("*.py") if p.resolve() != here and "cache=True" in p.read_text(encoding="utf-8"))
+    texts = ((p, p.read_bytes()) for p in sorted(root.rglob("*.py")) if p.resolve() != here)
+    return [text for _, text in texts if b"cache=True" in text]
 
 
 def clear_stale_cache(root: Path | None = None, stamp: Path | None = None) -> bool:
@@ -52,7 +54,7 @@ def clear_stale_cache(root: Path | None = None, stamp: Path | None = None) -> bo
     """
     root = Path(root) if root is not None else Path(__file__).resolve().parents[1]
     stamp = Path(stamp) if stamp is not None else STAMP
-    digest = hashlib.sha256(b"".join(p.read_bytes() for p in _sources(root))).hexdigest()
+    digest = hashlib.sha256(b"".join(_sources(root))).hexdigest()
     if stamp.exists() and stamp.read_text().strip() == digest:
         return False
     for f in list(root.rglob("__pycache__/*.nbi")) + list(root.rglob("__pycache__/*.nbc")):
