@@ -410,7 +410,7 @@ def diagnose_prepared(
 def inversion_notes(runs, law: str) -> list[str]:
     """What to tell when the base model's replay turned elements inside out: ``runs`` its
     :class:`core.diagnosis.trials.FieldRun` of the train and validation sequences."""
-    bad = [f"{r.sequence} (at most {r.inverted} at once)" for r in runs if r.inverted > 0]
+    bad = [f"{r.sequence} (at most {r.inverted} at once)" for r in runs if r.inverted]
     if not bad:
         return []
     if law == "corotational":  # no resistance to inversion

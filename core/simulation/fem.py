@@ -165,8 +165,18 @@ def linear_stiffness(elements: ElementData, mu: np.ndarray, lam: np.ndarray) -> 
     indptr, indices, slot, k_mu, k_lam = elements.stiffness_assembly()
     m = np.broadcast_to(np.asarray(mu, dtype=np.float64), (n_el,))
     lm = np.broadcast_to(np.asarray(lam, dtype=np.float64), (n_el,))
-    vals = (k_mu * m[:, None] + k_lam * lm[:, None]).ravel()
-    data = np.bincount(slot, weights=vals, minlength=indices.size)
+    if n_el and np.all(m == m[0]) and np.all(lm == lm[0]):
+        # one material (most replays): K = mu K_mu + lam K_lam on the pattern, assembled once
+        # (a 13x5x5 model's stiffness in 0.5 ms instead of 3.2 ms of per-element sums)
+        unit = elements._cache.get("stiffness_unit")
+        if unit is None:
+            unit = (np.bincount(slot, weights=k_mu.ravel(), minlength=indices.size),
+                    np.bincount(slot, weights=k_lam.ravel(), minlength=indices.size))
+            elements._cache["stiffness_unit"] = unit
+        data = m[0] * unit[0] + lm[0] * unit[1]
+    else:
+        vals = (k_mu * m[:, None] + k_lam * lm[:, None]).ravel()
+        data = np.bincount(slot, weights=vals, minlength=indices.size)
     n = indptr.size - 1
     return sp.csr_matrix((data, indices.copy(), indptr.copy()), shape=(n, n))
 
@@ -301,19 +311,23 @@ def inverted_elements(nodes: np.ndarray, tets: np.ndarray, positions: np.ndarray
     """
     T = np.asarray(tets)
 
-    def volumes(x):  # six times the signed volumes, (..., E)
-        a = x[..., T[:, 0], :]
-        u, v, w = (x[..., T[:, k], :] - a for k in (1, 2, 3))
-        return (u[..., 0] * (v[..., 1] * w[..., 2] - v[..., 2] * w[..., 1])
-                + u[..., 1] * (v[..., 2] * w[..., 0] - v[..., 0] * w[..., 2])
-                + u[..., 2] * (v[..., 0] * w[..., 1] - v[..., 1] * w[..., 0]))
+    def volumes(x):  # six times the signed volumes, (..., E), of positions (..., N, 3)
+        xt = np.ascontiguousarray(np.moveaxis(x, -1, 0))  # component-major: contiguous gathers
+        a = xt[..., T[:, 0]]
+        u, v, w = (xt[..., T[:, k]] - a for k in (1, 2, 3))
+        return (u[0] * (v[1] * w[2] - v[2] * w[1]) + u[1] * (v[2] * w[0] - v[0] * w[2])
+                + u[2] * (v[0] * w[1] - v[1] * w[0]))
 
     rest = volumes(np.asarray(nodes, dtype=np.float64))
     sign, floor = np.sign(rest), 1e-3 * np.abs(rest)
     x = np.asarray(positions, dtype=np.float64)
     frames = x.reshape((-1,) + x.shape[-2:])
     counts = np.zeros(frames.shape[0], dtype=np.int64)
+    # in chunks of about a million element-frames: small temporaries (a 25x9x9 mesh over 180
+    # frames took 0.6 s at once) without a Python step per frame (a 13x5x5 run's 90 frames:
+    # 8.7 ms frame by frame, 3.9 ms in one chunk gathered component-major)
+    chunk = max(1, 1_000_000 // max(T.shape[0], 1))
     with np.errstate(invalid="ignore"):
-        for f, xf in enumerate(frames):  # frame by frame: small temporaries (a 25x9x9 mesh over 180 frames in 0.09 s, 0.6 s at once)
-            counts[f] = np.count_nonzero(volumes(xf) * sign <= floor)
+        for f in range(0, frames.shape[0], chunk):
+            counts[f:f + chunk] = np.count_nonzero(volumes(frames[f:f + chunk]) * sign <= floor, axis=-1)
     return counts.reshape(x.shape[:-2])

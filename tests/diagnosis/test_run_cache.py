@@ -43,6 +43,10 @@ def test_a_bounded_cache_replays_what_it_dropped_and_answers_the_same(small_sess
             np.testing.assert_array_equal(ra.force, rb.force)
     # gravity changes the field: the runs compared are not all the same run
     assert not np.array_equal(first["roomy"][0][0].field, first["roomy"][1][0].field)
+    # the base model's runs count the inverted elements (the diagnosis's note), a model with
+    # effects does not (nothing reads it): 0 under the small session's shallow presses
+    assert [r.inverted for r in first["roomy"][0]] == [0] * n_val
+    assert [r.inverted for r in first["roomy"][1]] == [None] * n_val
 
 
 def test_the_least_recently_used_run_goes_first():
