@@ -44,9 +44,18 @@ fi
 
 PYTHON="${PYTHON:-python3.11}"
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
-# torch first, pinned: the local CPU wheel. An unpinned torch would pull gigabytes of CUDA.
-.venv/bin/python -m pip install -q --disable-pip-version-check torch==2.13.0
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[dev]'
+# The packages: skipped when this script and pyproject.toml are those of the last
+# successful install (pip's own check of every requirement took ~12 s of each re-run; the
+# package itself is installed editable, so source changes need no reinstall).
+STAMP=.venv/.tissuetwin-install.sha256
+WANT="$(cat scripts/setup.sh pyproject.toml | sha256sum | cut -d' ' -f1)"
+if [ ! -x .venv/bin/tissuetwin ] || [ "$(cat "$STAMP" 2>/dev/null)" != "$WANT" ]; then
+  rm -f "$STAMP"
+  # torch first, pinned: the local CPU wheel. An unpinned torch would pull gigabytes of CUDA.
+  .venv/bin/python -m pip install -q --disable-pip-version-check torch==2.13.0
+  .venv/bin/python -m pip install -q --disable-pip-version-check -e '.[dev]'
+  echo "$WANT" > "$STAMP"
+fi
 # numba compiles the simulation's kernels on first use (about 100 s on 2 cores) and caches
 # them beside the sources; compile them here, once per install, not in a user's first replay.
 .venv/bin/tissuetwin precompile
