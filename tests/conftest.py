@@ -41,9 +41,28 @@ def sample_session() -> Path:
     return SAMPLE
 
 
-@pytest.fixture(scope="session")
-def small_session(tmp_path_factory) -> Path:
-    """A `small` virtual-lab session with no effects (seed 3), generated once."""
+def shared_session(tmp_path_factory, name: str, **kwargs) -> Path:
+    """A virtual-lab session (``kwargs`` go to :func:`core.lab.generate_session`) made once
+    per test run and shared by the test workers: in the base folder of the run (beside the
+    workers' own), the first worker to ask makes it under a file lock, the other waits and
+    reads it (once per worker, the small session cost ~20 s of the suite's CPU twice).
+    Read-only for tests: copy it to change it."""
+    from filelock import FileLock
+
     from core.lab import generate_session
 
-    return generate_session(tmp_path_factory.mktemp("lab") / "small-s3", preset="small", seed=3)
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, shared by its workers
+    path = root / "shared-sessions" / name
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with FileLock(str(path) + ".lock"):
+        if not (path / "session.json").exists():  # (a folder without it: a run that died making it)
+            generate_session(path, overwrite=path.exists(), **kwargs)
+    return path
+
+
+@pytest.fixture(scope="session")
+def small_session(tmp_path_factory) -> Path:
+    """A `small` virtual-lab session with no effects (seed 3), generated once per test run."""
+    return shared_session(tmp_path_factory, "small-s3", preset="small", seed=3)

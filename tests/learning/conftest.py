@@ -20,10 +20,9 @@ SMALL_NET = dict(widths=(8, 16, 32))
 
 @pytest.fixture(scope="session")
 def gravity_session(tmp_path_factory):
-    from core.lab import generate_session
+    from tests.conftest import shared_session
 
-    return generate_session(tmp_path_factory.mktemp("lab") / "small-gravity-s3", preset="small", seed=3,
-                            effects=[{"kind": "gravity"}])
+    return shared_session(tmp_path_factory, "small-gravity-s3", preset="small", seed=3, effects=[{"kind": "gravity"}])
 
 
 @pytest.fixture(scope="session")
