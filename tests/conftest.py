@@ -20,6 +20,8 @@ if "TISSUETWIN_CACHE_DIR" not in os.environ:
 
     os.environ["TISSUETWIN_CACHE_DIR"] = tempfile.mkdtemp(prefix="tissuetwin-test-cache-")
 
+from tests._sessions import shared_session  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT.parent / "shared" / "sample-session"
 
@@ -39,27 +41,6 @@ def sample_session() -> Path:
     if not (SAMPLE / "session.json").exists():
         pytest.skip("../shared/sample-session is not beside the repository")
     return SAMPLE
-
-
-def shared_session(tmp_path_factory, name: str, **kwargs) -> Path:
-    """A virtual-lab session (``kwargs`` go to :func:`core.lab.generate_session`) made once
-    per test run and shared by the test workers: in the base folder of the run (beside the
-    workers' own), the first worker to ask makes it under a file lock, the other waits and
-    reads it (once per worker, the small session cost ~20 s of the suite's CPU twice).
-    Read-only for tests: copy it to change it."""
-    from filelock import FileLock
-
-    from core.lab import generate_session
-
-    root = tmp_path_factory.getbasetemp()
-    if os.environ.get("PYTEST_XDIST_WORKER"):
-        root = root.parent  # the run's folder, shared by its workers
-    path = root / "shared-sessions" / name
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with FileLock(str(path) + ".lock"):
-        if not (path / "session.json").exists():  # (a folder without it: a run that died making it)
-            generate_session(path, overwrite=path.exists(), **kwargs)
-    return path
 
 
 @pytest.fixture(scope="session")

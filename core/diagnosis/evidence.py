@@ -209,7 +209,9 @@ class Evidence:
                         else:
                             self.repeated += k in self.cache.dropped
                             keys.append(k)
-                            todo.append(FieldTrial(self.trial(n, m, grid), self.layout, req.paper, d))
+                            # the base model on the replay's own mesh: the inversion note's runs
+                            todo.append(FieldTrial(self.trial(n, m, grid), self.layout, req.paper, d,
+                                                   count_inverted=not m.effects and grid == tuple(self.cfg.grid)))
                     rows.append(row)
                 plans.append(rows)
         if todo:

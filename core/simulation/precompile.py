@@ -31,8 +31,8 @@ def _sources(root: Path) -> list[bytes]:
     """The sources of the modules under ``root`` with numba kernels cached on disk (this one
     aside), in path order, each read once."""
     here = Path(__file__).resolve()
-    texts = ((p, p.read_bytes()) for p in sorted(root.rglob("*.py")) if p.resolve() != here)
-    return [text for _, text in texts if b"cache=True" in text]
+    texts = (p.read_bytes() for p in sorted(root.rglob("*.py")) if p.resolve() != here)
+    return [text for text in texts if b"cache=True" in text]
 
 
 def clear_stale_cache(root: Path | None = None, stamp: Path | None = None) -> bool:

@@ -20,7 +20,7 @@ SMALL_NET = dict(widths=(8, 16, 32))
 
 @pytest.fixture(scope="session")
 def gravity_session(tmp_path_factory):
-    from tests.conftest import shared_session
+    from tests._sessions import shared_session
 
     return shared_session(tmp_path_factory, "small-gravity-s3", preset="small", seed=3, effects=[{"kind": "gravity"}])
 
