@@ -69,13 +69,45 @@ POWER = 0.8
 """A kind's ``min_size`` is claimed with this probability (the minimum detectable effect at 80 % power)."""
 
 
+def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: float, level: float,
+                     X_t: np.ndarray | None = None, X_v: np.ndarray | None = None):
+    """``critical(s)``: the critical value a claim of a kind needs when the data hold
+    strength ``s`` of the change ``X`` ((L_t,), (L_v,), per unit strength; default the
+    kind's signature ``D``, its change in a model-form world otherwise) and the kind is
+    fitted along ``D``, from ``critical``, its value without an effect.
+
+    The held-out test draws its null from the round's residual, which holds the effect
+    itself where there is one (:meth:`core.diagnosis.inference.HeldOutTest.null_with_effect`):
+    a size solved against the no-effect critical value said little of what a claim needed
+    (gravity on field seed 11: critical 37.5 without an effect, 8934 at 2x the size then
+    stated). The growth is that of the null of a fit along ``D`` alone, at ``level`` (at
+    least ``TAIL_MIN_COUNT / R``, where the replicates' own quantile holds: the fitted tail
+    costs ~40 ms a call and the solve asks ~50 strengths per placement), added to
+    ``critical``: exact where ``critical`` is that null's, a little short where it comes
+    from the kind's own fit of more parameters, which takes up more of a resampled effect.
+    (Scaled as a ratio instead, a critical value far above the one-column null's multiplied
+    the growth: 3x the change's own statistic on a synthetic case, where the one-column
+    null reached 0.29 of it.)"""
+    from core.diagnosis.inference import TAIL_MIN_COUNT
+
+    test = rnd.test
+    null = test.null_with_effect(D_t[:, None], D_v[:, None], D_t if X_t is None else X_t, D_v if X_v is None else X_v)
+    lv = max(float(level), TAIL_MIN_COUNT / max(test.replicates, 1))
+
+    def q(s: float) -> float:
+        return float(np.quantile(null(s), 1.0 - lv, method="higher"))
+
+    q0 = q(0.0)
+    return lambda s: critical + max(q(s) - q0, 0.0)
+
+
 def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[tuple[dict, float]],
                first: list | None = None) -> list[float | None]:
-    """For each ``(assumed, critical)`` of ``jobs``: the smallest size of ``cls`` with the
+    """For each ``(assumed, critical, level)`` of ``jobs``: the smallest size of ``cls`` with the
     ``assumed`` parameters that the round's test would claim with probability
     :data:`POWER`: the strength whose noise-free held-out statistic, plus the noise's part at
     that power (from the session's own replicates, :meth:`HeldOutTest.min_strength`),
-    reaches ``critical``. The nuisances keep their bounds (a 0.8 mm sag is not a 0.2 mm
+    reaches ``critical`` as it grows with the effect (:func:`growing_critical`). The nuisances keep their bounds (a 0.8 mm sag is not a 0.2 mm
     registration error), so this is solved by bisection on the bounded projection. The
     signature is simulated at the reference size and scaled, then once more at the size
     found (the change is not linear in the size for every kind); each of the two steps
@@ -91,12 +123,12 @@ def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[
                 else _signatures(ev, rnd, [cls.sized(sizes[j], ctx, **jobs[j][0]).to_dict() for j in todo]))
         again = []
         for j, sig in zip(todo, sigs):
-            critical = jobs[j][1]
+            _, critical, level = jobs[j]
             st = cls.strength(sizes[j])
             if sig is None or st == 0:
                 continue
             D_t, D_v = sig[0] / st, sig[1] / st
-            s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER,
+            s = rnd.test.min_strength(D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level), s_max, POWER,
                                       expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
             if s is None:
                 found[j] = None
@@ -119,7 +151,7 @@ def _world_statistic(nuis: Nuisance, fit: FreeBeside, X_t: np.ndarray, X_v: np.n
 
 
 def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed: dict, size: float,
-                    critical: float) -> tuple[float | None, str]:
+                    critical: float, level: float) -> tuple[float | None, str]:
     """(min_size or None, the world that set it or ""): the smallest size of ``cls`` with
     the ``assumed`` parameters that the round's test claims at :data:`POWER` whichever
     phantom of the model-form gap's plausible range made the data.
@@ -131,9 +163,11 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
     the fine mesh) as ``X_W = run(W + effect) - run(W)``,
     at ``size`` and scaled linearly. The test still fits the kind as the replay makes it
     (along its own signature D, beside the bounded nuisances), so where a world's change
-    differs from D, or is weaker, less of it is explained. The noise-free statistic is the
-    least of the worlds' (:func:`_world_statistic`), the noise's part as
-    :meth:`core.diagnosis.inference.HeldOutTest.min_strength` gives it; solved at ``size``
+    differs from D, or is weaker, less of it is explained. Each world's size is solved with
+    its own noise-free statistic (:func:`_world_statistic`), the noise's part as
+    :meth:`core.diagnosis.inference.HeldOutTest.min_strength` gives it, against the
+    critical value grown with the change that world's data hold (:func:`growing_critical`),
+    and the largest is stated; solved at ``size``
     in the coarse worlds and once more at the size found (the fine mesh only then, one
     fine run per role instead of two: the detectability stage of lab gravity seed 0, 12 s
     with force, 58 -> 40 s).
@@ -187,14 +221,19 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
                 if np.all(np.isfinite(X_t)) and np.all(np.isfinite(X_v)):
                     changes.append((name, X_t, X_v))
         fit = nuis.beside(D_t, D_v)  # the signature as a free column beside the bounded nuisances
-
-        def weakest(s):
-            return min((_world_statistic(nuis, fit, X_t, X_v, s, ev.sigma2), name) for name, X_t, X_v in changes)
-
-        s = rnd.test.min_strength(D_t, D_v, critical, s_max, POWER, expected=lambda s: weakest(s)[0])
-        if s is None:
-            return None, weakest(s_max)[1]
-        found, label = cls.size_at(s), weakest(s)[1]
+        # per world: the size its data would be claimed at, against the critical value
+        # grown with the change that world's data hold (the bootstrap resamples the round's
+        # residual, the effect in it included); the size stated holds in every world
+        per = []
+        for name, X_t, X_v in changes:
+            s_w = rnd.test.min_strength(
+                D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, X_t, X_v), s_max, POWER,
+                expected=lambda s, X_t=X_t, X_v=X_v: _world_statistic(nuis, fit, X_t, X_v, s, ev.sigma2))
+            if s_w is None:
+                return None, name
+            per.append((s_w, name))
+        s, label = max(per, key=lambda x: x[0])  # the first of equals: the replay's own before a world
+        found = cls.size_at(s)
         settled = abs(found - size) <= 0.05 * max(abs(size), 1e-12) or (found > cls.max_size and size >= cls.max_size)
         if step == 1 or (settled and not fine_w):
             break
@@ -422,11 +461,11 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
                         continue
                     critical = max(rnd.test.critical(rnd.test.null(sig[0][:, None], sig[1][:, None]), level), 0.0)
                 bars[repr(assumed)] = critical
-                jobs.append((assumed, critical))
+                jobs.append((assumed, critical, level))
                 first.append(sig)
             sizes = _min_sizes(ev, rnd, cls, ctx, jobs, first)
             return [(None if size is None or size > cls.max_size else size, assumed)
-                    for size, (assumed, _) in zip(sizes, jobs)]
+                    for size, (assumed, _, _) in zip(sizes, jobs)]
 
         sized = sizes_of(options)
         best = _pick(sized, cls.assume)
@@ -435,7 +474,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
         if size is not None and kind not in claimed and kind not in in_group:
             # "not found above min_size" must hold whichever phantom of the model-form gap's
             # plausible range made the data, not only the replay's own physics
-            size, world = _world_min_size(ev, rnd, cls, ctx, assumed, size, bars[repr(assumed)])
+            size, world = _world_min_size(ev, rnd, cls, ctx, assumed, size, bars[repr(assumed)], level)
             size = None if size is None or size > cls.max_size else max(size, replay_size)
         answer = ("found" if kind in claimed else "confounded" if kind in in_group
                   else "cannot_tell" if size is None else "not_found")
@@ -456,7 +495,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
                 far_size = None if far is None else far[0]
                 params["beside"] = {"distance": cls.beside_distance, "min_size": far_size}
                 if far_size is not None:  # held to the model-form worlds as the best placement is
-                    far_world, _ = _world_min_size(ev, rnd, cls, ctx, far[1], far_size, bars[repr(far[1])])
+                    far_world, _ = _world_min_size(ev, rnd, cls, ctx, far[1], far_size, bars[repr(far[1])], level)
                     far_world = None if far_world is None or far_world > cls.max_size else max(far_world, far_size)
                     params["beside"].update(min_size=far_world, replay_min_size=far_size)
                     far_size = far_world

@@ -14,6 +14,7 @@ from core.simulation.effects import EFFECT_KINDS, PhantomContext
 
 L = 60  # entries of a residual vector per role
 SIGMA2 = 1e-2
+LEVEL = 0.01 / 8  # a kind's share of alpha 0.01 among the eight kinds
 
 
 class _Evidence:
@@ -63,19 +64,21 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     critical = 50.0
 
     same = _Evidence(cfg, D, D)
-    base_size, world = _world_min_size(same, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
-    assert base_size is not None and 0 < base_size < cls.max_size and world in ("", *[n for n, _ in model_form_worlds(same)])
+    base_size, world = _world_min_size(same, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
+    # every world ties (the label is whichever rounding made least)
+    ties = ("", *[n for n, _ in model_form_worlds(same)], *(mesh_world(same) or ())[:1])
+    assert base_size is not None and 0 < base_size < cls.max_size and world in ties
     if fine_grid is None:
         assert mesh_world(same) is None
         weak = _Evidence(cfg, D, {r: np.zeros(L) for r in D})
-        assert _world_min_size(weak, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)[0] == pytest.approx(base_size)
+        assert _world_min_size(weak, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)[0] == pytest.approx(base_size)
         assert weak.fine_runs == 0
         return
     label = mesh_world(same)[0]
     assert label == "the 25x9x9 mesh" and same.fine_runs > 0
 
     half = _Evidence(cfg, D, {r: 0.5 * v for r, v in D.items()})
-    size, world = _world_min_size(half, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
+    size, world = _world_min_size(half, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     assert world == label and size > 1.5 * base_size
 
     u = {r: rnd.nuisance.project(rng.normal(size=L)) for r in D}  # the nuisances leave the change whole
@@ -83,7 +86,7 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     u["train"] = u["train"] - d_t * (u["train"] @ d_t) / (d_t @ d_t)  # orthogonal to the fitted signature
     u["validation"] = np.zeros(L)  # and nothing of it along the signature on held-out data
     ortho = _Evidence(cfg, D, u)
-    size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical)
+    size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     assert size is None and world == label
 
 
