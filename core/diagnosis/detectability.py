@@ -29,7 +29,7 @@ from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_di
 if TYPE_CHECKING:  # the engine's round: its model, nuisances, held-out test and residuals
     from core.diagnosis.rounds import Round
 
-__all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "withdraw", "UNDERSIZED"]
+__all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "with_dependents", "withdraw", "UNDERSIZED"]
 
 UNDERSIZED = 0.1
 """A claim whose size is below this fraction of its own kind's ``min_size`` is withdrawn
@@ -547,6 +547,31 @@ def undersized_claims(effects: dict[str, dict], det: dict, ctx: PhantomContext) 
             out[kind] = (f"withdrawn: claimed at {size:.3g} {unit}, below a tenth of the {d.min_size:.3g} {unit} that "
                          f"these data would have needed to claim it by its own signature; its fit took up a residual "
                          f"of another shape (a model-form gap), so it cannot be told")
+    return out
+
+
+def with_dependents(claimed: list, whys: dict[str, str]) -> dict[str, str]:
+    """``whys`` with the claims made on top of a withdrawn one: each round of the selection
+    fits its candidates with the causes claimed before it in the model, so a claim of a
+    later round than a withdrawn one was judged against a model holding a cause that does
+    not stand, and is withdrawn with it. (A new selection without the withdrawn kind could
+    recover it; not done: it costs the rounds again.) Measured (with a null drawn from each
+    candidate's own residual, tried at stop 51): a hidden compliant base claimed in round
+    0 and withdrawn below its own detectability, and a 15 mm probe radius claimed in
+    round 1 on top of it, left standing.
+
+    Args:
+        claimed: ``[(fit space, fit, report)]`` of the claimed causes (``report.round``:
+            the selection round that claimed it). whys: {kind: why} of the claims withdrawn.
+    """
+    if not whys:
+        return whys
+    out = dict(whys)
+    first = min((rep.round, c.kind) for c, _, rep in claimed if c.kind in whys)
+    for c, _, rep in claimed:
+        if c.kind not in out and rep.round is not None and rep.round > first[0]:
+            out[c.kind] = (f"withdrawn: claimed in round {rep.round} on top of {first[1].replace('_', ' ')}, "
+                           f"whose claim was withdrawn ({whys[first[1]]})")
     return out
 
 

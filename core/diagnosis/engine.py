@@ -65,7 +65,7 @@ import numpy as np
 
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import detectability, undersized_claims, unobservable, withdraw
+from core.diagnosis.detectability import detectability, undersized_claims, unobservable, with_dependents, withdraw
 from core.diagnosis.evidence import Evidence, Request
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
@@ -222,7 +222,7 @@ def diagnose_prepared(
         significant, nested = set(), {}
         rejected = set(holm(pvals, cfg.alpha))
         for k in rejected:
-            verdict, nested[k] = beyond_verdict(rnd, ev, evid[k])
+            verdict, nested[k] = beyond_verdict(rnd, ev, evid[k], cands[k])
             refused.pop(k, None)
             small.pop(k, None)
             if verdict is None:
@@ -306,7 +306,8 @@ def diagnose_prepared(
         lap("detectability")
         # E is refitted without them, and their fits go beside it as unclaimed causes
         claimed, reports, det, gone, said = withdraw(
-            claimed, reports, det, undersized_claims({c.kind: f.effect for c, f, _ in claimed}, det, ctx_all),
+            claimed, reports, det,
+            with_dependents(claimed, undersized_claims({c.kind: f.effect for c, f, _ in claimed}, det, ctx_all)),
             "claimed, then withdrawn as below its own detectability")
         if said:
             notes += said
@@ -328,6 +329,7 @@ def diagnose_prepared(
         gap = {c.kind: why for c, g, _ in claimed if (why := absence_within(c, g, worlds))}
         if not gap:
             break
+        gap = with_dependents(claimed, gap)
         claimed, reports, det, more, said = withdraw(
             claimed, reports, det, gap, "claimed, then withdrawn: no effect within its model-form interval",
             stated={k: f"cannot tell from this data: a claim of it was {why}" for k, why in gap.items()})

@@ -227,18 +227,35 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
     return CandidateEvidence(fit, va, T, chans, null, p, crit, worse, reproduction(e_v, h, ev.sigma2))
 
 
-def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence) -> tuple[tuple[str, str] | None, dict | None]:
-    """Whether a candidate whose held-out drop passed Holm's procedure is claimed:
+def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
+                   cand: FitSpace | None = None) -> tuple[tuple[str, str] | None, dict | None]:
+    """Whether a candidate whose held-out drop passed Holm's procedure is claimed: not when
+    its fit sits at a bound of the kind's plausible range (:meth:`FitSpace.at_bound` of
+    ``cand``: "at_bound", answer "cannot tell"), then
     :func:`core.diagnosis.inference.claim_check` (reproduced at its fitted size, no channel
     made worse), then the nested test in the model-form worlds
     (:func:`core.diagnosis.nuisance.beyond_model_form`):
     "model_form" (answer "cannot tell") when one of them explains its residual.
+
+    A fit at the edge of the range asked for more of the kind than a phantom plausibly
+    holds: its residual is of another shape, which the kind takes up as far as it can.
+    Measured (with a null drawn from each candidate's own residual, tried at stop 51):
+    a hidden compliant base, force, 4 x 6 s, answered by a 15 mm probe radius (3x the
+    nominal, its bound); friction claims at mu 1.8-2.0 (its bound 2) before friction
+    needed slides.
 
     Returns:
         (None or ``(reason, why)`` as ``claim_check``'s, ``{"world", "delta_chi2", "passed"}``
         of the nested test for :class:`~core.diagnosis.results.CauseReport`
         ``model_form_nested``, None when it did not run).
     """
+    edges = cand.at_bound(e.fit.x) if cand is not None else []
+    if edges:
+        return ("at_bound",
+                f"cannot tell from this data: its fit explained {e.statistic:.0f} (chi2) of the held-out residual "
+                f"with {', '.join(edges)} (the edge of this kind's plausible range): the residual asks for more of "
+                "this kind than a phantom plausibly holds, a residual of another shape (a model-form gap) that the "
+                "kind took up as far as it could"), None
     verdict = claim_check(e.statistic, e.critical, e.reproduction, e.channels)
     if verdict is not None:
         return verdict, None

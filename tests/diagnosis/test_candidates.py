@@ -45,3 +45,25 @@ def test_top_presses_finds_the_deepest_point_of_each_press_on_the_top():
     np.testing.assert_allclose(got, [[0.020 + 0.002 * 0.25, 0.02], [0.045 + 0.002 * 0.75, 0.02]], atol=1e-9)
     starts = candidates(size, r, got)["inclusion"].starts
     assert [tuple(np.round(s[:2], 6)) for s in starts] == [tuple(np.round(p, 6)) for p in got]
+
+
+def test_a_fit_at_the_edge_of_a_kinds_plausible_range_is_told_but_not_one_at_the_phantoms_geometry():
+    """``FitSpace.at_bound``: a probe radius of 3x the nominal (its upper bound), friction at
+    mu 2 and a stiffness ratio at its bound are flagged; an inclusion's centre against the
+    phantom's side or its smallest radius (geometry, resolution: ``open_ends``) are not, nor
+    is any kind's start, or a fit one step and a bit inside."""
+    cands = candidates(SIZE, 0.005)
+    for c in cands.values():
+        for s in c.starts:
+            assert c.at_bound(s) == [], (c.kind, s)
+    pr = cands["probe_radius"]
+    assert pr.at_bound(np.array([0.015])) == ["radius at its upper bound 0.015"]
+    assert pr.at_bound(pr.upper - 1.01 * pr.steps) == []
+    assert cands["friction"].at_bound(np.array([2.0])) and cands["friction"].at_bound(np.array([0.01]))
+    inc = cands["inclusion"]
+    x = inc.clip(np.array([0.0, 0.02, 0.03, 0.003, 0.6]))  # against the side, smallest radius
+    assert inc.at_bound(x) == []
+    x[4] = inc.upper[4]
+    assert inc.at_bound(x) == ["log10_stiffness_ratio at its upper bound 1.5"]
+    g = cands["gravity"]
+    assert g.at_bound(np.array([0.0, 0.0, -9.81])) == [] and g.at_bound(np.array([0.0, 0.0, -30.0]))

@@ -55,3 +55,30 @@ def test_a_rival_with_the_same_change_is_confounded_or_replaces_the_best():
 def test_no_passing_kind_is_an_error():
     with pytest.raises(ValueError, match="no kind passed"):
         choose([], ["gravity"], {"gravity": 1.0}, CHANGES.__getitem__, lambda k, g: False)
+
+
+def test_a_fit_at_its_bound_is_not_claimed_and_claims_on_top_of_a_withdrawn_one_go_with_it():
+    """A fit at the edge of its kind's plausible range is refused before any claim check
+    (answer "cannot tell", no simulation asked); a claim made in a round after one that is
+    withdrawn was judged against a model holding a cause that does not stand, and is
+    withdrawn with it (an earlier one stays)."""
+    from types import SimpleNamespace
+
+    from core.diagnosis.candidates import candidates
+    from core.diagnosis.detectability import with_dependents
+    from core.diagnosis.rounds import beyond_verdict
+
+    cands = candidates((0.0687, 0.0393, 0.0358), 0.005)
+    e = SimpleNamespace(fit=SimpleNamespace(x=np.array([0.015, 1e-4])), statistic=900.0)
+    verdict, nested = beyond_verdict(None, None, e, cands["probe_radius"])  # rnd and ev are not asked
+    assert verdict[0] == "at_bound" and "radius at its upper bound 0.015" in verdict[1] and nested is None
+
+    def claim(kind, rnd):
+        return (SimpleNamespace(kind=kind), None, SimpleNamespace(round=rnd))
+
+    claimed = [claim("gravity", 0), claim("base_compliance", 1), claim("probe_radius", 2)]
+    out = with_dependents(claimed, {"base_compliance": "below its own detectability"})
+    assert set(out) == {"base_compliance", "probe_radius"}
+    assert "on top of base compliance" in out["probe_radius"]
+    assert with_dependents(claimed, {}) == {}
+    assert set(with_dependents(claimed, {"probe_radius": "x"})) == {"probe_radius"}

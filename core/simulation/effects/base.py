@@ -106,6 +106,11 @@ class FitSpace:
             ``log10_stiffness``). A claim whose 95 % interval over the model-form worlds
             holds every one of them cannot be told from no effect
             (:func:`core.diagnosis.worlds.absence_within`).
+        open_ends: the bounds that are not the kind's plausible range but the phantom's
+            geometry or the fit's resolution: ``"name"`` (both of that variable's bounds),
+            ``"name:lower"`` or ``"name:upper"`` (an inclusion's centre stays inside the
+            phantom, its radius at least 3 mm). A fit at any other bound (:meth:`at_bound`)
+            asked for more of the kind than a phantom plausibly holds.
     """
 
     kind: str
@@ -120,6 +125,20 @@ class FitSpace:
     project: Callable[[np.ndarray], np.ndarray] | None = None
     searches: int = 1
     absent: tuple[tuple[str, float], ...] = ()
+    open_ends: tuple[str, ...] = ()
+
+    def at_bound(self, x: np.ndarray) -> list[str]:
+        """The variables of ``x`` (n,) that sit within one step (:attr:`steps`) of a bound
+        that is the kind's plausible range (not one of :attr:`open_ends`), as
+        ``"name at its lower bound -1"`` strings for a report; [] when none does."""
+        x = np.asarray(x, dtype=np.float64).reshape(-1)[: len(self.names)]
+        out = []
+        for j, name in enumerate(self.names):
+            for side, bound, near in (("lower", self.lower[j], x[j] <= self.lower[j] + self.steps[j]),
+                                      ("upper", self.upper[j], x[j] >= self.upper[j] - self.steps[j])):
+                if near and name not in self.open_ends and f"{name}:{side}" not in self.open_ends:
+                    out.append(f"{name} at its {side} bound {bound:.4g}")
+        return out
 
     def clip(self, x: np.ndarray) -> np.ndarray:
         """``x`` clipped to the bounds, then projected onto the feasible set, (n,) float64."""

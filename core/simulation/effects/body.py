@@ -204,6 +204,7 @@ class Inclusion(Effect):
             _a(lo[0], lo[1], lo[2], 0.003, -1.0), _a(hi[0], hi[1], hi[2], 0.5 * float(np.min(hi - lo)), 1.5), starts,
             lambda x: {"kind": "inclusion", **params(x)}, params, inside, searches=len(starts),
             absent=(("log10_stiffness_ratio", 0.0),),
+            open_ends=("center_x", "center_y", "center_z", "radius:lower"),
         )
 
     @classmethod
