@@ -204,7 +204,8 @@ def run_case(root: Path, cfg: LabConfig, ctx: PhantomContext, kind: str, seed: i
         truth = read_truth(path) or {}
         rec["lab_youngs"] = E_lab = float(truth["youngs_modulus"]) if "youngs_modulus" in truth else None
         rec["lab_variation"] = truth.get("lab_variation")
-        dcfg = DiagnosisConfig(use_force=force, fit_youngs=not args.no_youngs, sensitivities=method == "exact")
+        dcfg = DiagnosisConfig(use_force=force, fit_youngs=not args.no_youngs, sensitivities=method == "exact",
+                               null_residual=args.null)
         t0 = time.perf_counter()
         d = diagnose(path, dcfg, executor=ex)
         rec["wall_time_s"] = dt = time.perf_counter() - t0
@@ -439,6 +440,9 @@ def main() -> None:
     ap.add_argument("--method", choices=("exact", "fd", "both"), default="exact",
                     help="the fits' Jacobians: exact sensitivities (default), forward differences (the former "
                          "method), or both on every case")
+    ap.add_argument("--null", choices=("round", "candidate"), default="round",
+                    help="what the held-out test's bootstrap resamples: the round's residual (default) or each "
+                         "candidate's own (DiagnosisConfig.null_residual)")
     args = ap.parse_args()
     methods = ("exact", "fd") if args.method == "both" else (args.method,)
 

@@ -71,6 +71,13 @@ class DiagnosisConfig:
             it only where it leaves a channel unchanged in expectation (at most this
             rate) or where a model-form gap outweighs it there.
         n_null: wild block-bootstrap replicates of each kind's null distribution.
+        null_residual: what the bootstrap resamples: ``"round"``, the residual of the
+            round's model (without the candidate; it holds an effect that is there, so the
+            null and the critical value grow with it, and ``min_size`` is solved against
+            that growth: :func:`core.diagnosis.detectability.growing_critical`), or
+            ``"candidate"``, the residual each candidate's fit leaves (the wild
+            bootstrap's unrestricted residuals; a null that does not grow with the effect
+            its kind explains, for more power). See the README for both measured.
         block: length of the bootstrap's blocks of frames, s (the residual is correlated
             within a poke; blocks of 1 s are treated as independent).
         lm_iterations: most Levenberg-Marquardt iterations per candidate...
@@ -125,6 +132,7 @@ class DiagnosisConfig:
     alpha: float = 0.01
     consistency_alpha: float = 0.05
     n_null: int = 9999
+    null_residual: str = "round"
     block: float = 1.0
     lm_iterations: int = 4
     lm_tolerance: float = 1.0
@@ -151,6 +159,8 @@ class DiagnosisConfig:
         bad = [n for n in self.nuisances if n not in NUISANCES]
         if bad:
             raise TissueTwinError(f"unknown nuisance(s) {bad}; expected some of {list(NUISANCES)}")
+        if self.null_residual not in ("round", "candidate"):
+            raise TissueTwinError(f"null_residual must be 'round' or 'candidate', got {self.null_residual!r}")
         if not 0.0 < self.alpha < 0.5:
             raise TissueTwinError(f"alpha must be in (0, 0.5), got {self.alpha}")
         if not 0.0 <= self.consistency_alpha < 0.5:

@@ -70,7 +70,7 @@ POWER = 0.8
 
 
 def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: float, level: float,
-                     X_t: np.ndarray | None = None, X_v: np.ndarray | None = None):
+                     X_t: np.ndarray | None = None, X_v: np.ndarray | None = None, grows: bool = True):
     """``critical(s)``: the critical value a claim of a kind needs when the data hold
     strength ``s`` of the change ``X`` ((L_t,), (L_v,), per unit strength; default the
     kind's signature ``D``, its change in a model-form world otherwise) and the kind is
@@ -87,10 +87,13 @@ def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: f
     from the kind's own fit of more parameters, which takes up more of a resampled effect.
     (Scaled as a ratio instead, a critical value far above the one-column null's multiplied
     the growth: 3x the change's own statistic on a synthetic case, where the one-column
-    null reached 0.29 of it.)"""
+    null reached 0.29 of it.) ``grows`` False (a null drawn from each fitted candidate's
+    own residual, ``DiagnosisConfig.null_residual`` "candidate"): ``critical`` at every ``s``."""
     from core.diagnosis.inference import TAIL_MIN_COUNT
 
     test = rnd.test
+    if not grows:
+        return lambda s: critical
     null = test.null_with_effect(D_t[:, None], D_v[:, None], D_t if X_t is None else X_t, D_v if X_v is None else X_v)
     lv = max(float(level), TAIL_MIN_COUNT / max(test.replicates, 1))
 
@@ -128,7 +131,8 @@ def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[
             if sig is None or st == 0:
                 continue
             D_t, D_v = sig[0] / st, sig[1] / st
-            s = rnd.test.min_strength(D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level), s_max, POWER,
+            grows = ev.cfg.null_residual == "round"
+            s = rnd.test.min_strength(D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, grows=grows), s_max, POWER,
                                       expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
             if s is None:
                 found[j] = None
@@ -227,7 +231,8 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
         per = []
         for name, X_t, X_v in changes:
             s_w = rnd.test.min_strength(
-                D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, X_t, X_v), s_max, POWER,
+                D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, X_t, X_v, grows=ev.cfg.null_residual == "round"),
+                s_max, POWER,
                 expected=lambda s, X_t=X_t, X_v=X_v: _world_statistic(nuis, fit, X_t, X_v, s, ev.sigma2))
             if s_w is None:
                 return None, name

@@ -213,10 +213,13 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
     finite = trusted_columns(J_t, J_v)
     J_t, J_v = np.where(finite[None], J_t, 0.0), np.where(finite[None], J_v, 0.0)
     keep = finite & (np.linalg.norm(J_t, axis=0) > 0)
+    # cfg.null_residual "candidate": the null is drawn from the residual the candidate's fit
+    # leaves (HeldOutTest.under), which no longer holds the effect its kind explains
+    test = rnd.test.under(rnd.nuisance.project(r_t), h) if cfg.null_residual == "candidate" else rnd.test
     if not np.any(keep):
         null, p = np.zeros(1), 1.0
     else:
-        null = rnd.test.null(J_t[:, keep], J_v[:, keep])
+        null = test.null(J_t[:, keep], J_v[:, keep])
         # a cause must improve held-out data: the null of a many-parameter fit sits below
         # zero (fitting noise on train costs on validation), and a fit that made
         # validation worse, but less than noise would, is no evidence for the kind

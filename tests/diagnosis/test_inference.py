@@ -52,12 +52,17 @@ def _problem(rng, n_blocks=12, per_block=40, rho=0.5, p=2, m=2, effect=0.0):
     return nuis, r_t, r_v, J_t, J_v, blocks_t, blocks_v
 
 
+def _fitted(nuis, r_t, r_v, J_t, J_v):
+    """(train residual without its nuisance part, held-out residual) once J is fitted on train."""
+    Jp = np.stack([nuis.project(c) for c in J_t.T], axis=1)
+    theta = np.linalg.lstsq(Jp, nuis.project(r_t), rcond=None)[0]
+    return nuis.project(r_t - J_t @ theta), nuis.held_out(r_v - J_v @ theta, r_t - J_t @ theta)
+
+
 def _statistic(nuis, r_t, r_v, J_t, J_v):
     """The held-out drop of chi2 of the linear fit of J (the engine's T, sigma = 1)."""
     e_v = nuis.held_out(r_v, r_t)
-    Jp = np.stack([nuis.project(c) for c in J_t.T], axis=1)
-    theta = np.linalg.lstsq(Jp, nuis.project(r_t), rcond=None)[0]
-    h = nuis.held_out(r_v - J_v @ theta, r_t - J_t @ theta)
+    h = _fitted(nuis, r_t, r_v, J_t, J_v)[1]
     return float(e_v @ e_v - h @ h)
 
 
@@ -65,22 +70,27 @@ def test_p_values_of_the_wild_block_bootstrap_are_calibrated_under_the_null():
     """Without an effect, with noise correlated inside blocks, the share of p-values below
     0.05 is at most 5 % within the Monte-Carlo error of 300 problems (binomial sd 1.3 %):
     the test keeps the false-claim rate it states. It is conservative (measured: 0.3 %),
-    since a null below zero is mirrored about zero (see core.diagnosis.inference). Ignoring
+    since a null below zero is mirrored about zero (see core.diagnosis.inference); drawn
+    from the residual the candidate's fit leaves (``null_residual`` "candidate"), 3.0 %. Ignoring
     the blocks (every entry its own block) would reject far more often; checked below as
     the contrast."""
     rng = np.random.default_rng(1)
-    p_blocks, p_iid = [], []
+    p_blocks, p_iid, p_fitted = [], [], []
     for _ in range(300):
         nuis, r_t, r_v, J_t, J_v, b_t, b_v = _problem(rng)
         T = _statistic(nuis, r_t, r_v, J_t, J_v)
         test = HeldOutTest(nuis, nuis.project(r_t), nuis.held_out(r_v, r_t), b_t, b_v, 1.0, replicates=999,
                            seed=int(rng.integers(1 << 30)))
         p_blocks.append(test.p_value(T, test.null(J_t, J_v)))
+        # DiagnosisConfig.null_residual "candidate": drawn from the residual the candidate's fit leaves
+        own = test.under(*_fitted(nuis, r_t, r_v, J_t, J_v))
+        p_fitted.append(own.p_value(T, own.null(J_t, J_v)))
         iid = HeldOutTest(nuis, nuis.project(r_t), nuis.held_out(r_v, r_t), np.arange(b_t.size), np.arange(b_v.size),
                           1.0, replicates=999, seed=int(rng.integers(1 << 30)))
         p_iid.append(iid.p_value(T, iid.null(J_t, J_v)))
     rate = float(np.mean(np.asarray(p_blocks) < 0.05))
     assert rate <= 0.075, rate
+    assert float(np.mean(np.asarray(p_fitted) < 0.05)) <= 0.075, np.mean(np.asarray(p_fitted) < 0.05)
     assert float(np.mean(np.asarray(p_iid) < 0.05)) > rate + 0.04
 
 
@@ -181,6 +191,27 @@ def test_min_strength_against_the_critical_value_that_grows_with_the_effect_is_c
     rate = {key: v / n for key, v in hits.items()}
     assert rate["grown", 1.0] >= 0.7 and rate["grown", 2.0] >= 0.9 and rate["grown", 0.3] <= 0.4, rate
     assert rate["fixed", 1.0] < rate["grown", 1.0], rate
+
+
+def test_the_null_of_a_fitted_candidate_does_not_grow_with_the_effect():
+    """Drawn from the round's residual, the null holds the effect itself and its critical
+    value grows with it as the statistic does (measured on a field session: gravity's 37.5
+    without it, 8934 at 2x its min_size, 35068 at 4x, T/critical ~1.27 throughout); drawn
+    from the residual the candidate's fit leaves (``HeldOutTest.under``), it stays the
+    noise's, so a large effect is claimed by a wide margin (measured here: critical values
+    10.7, 32.0, 265 from the round's residual for effects 0, 1, 3 with T 1.3, 32.9, 383;
+    10.3 at each from the fitted one)."""
+    crit_round, crit_own, stat = {}, {}, {}
+    for effect in (0.0, 1.0, 3.0):
+        nuis, r_t, r_v, J_t, J_v, b_t, b_v = _problem(np.random.default_rng(7), effect=effect, p=1)
+        test = HeldOutTest(nuis, nuis.project(r_t), nuis.held_out(r_v, r_t), b_t, b_v, 1.0, replicates=1999, seed=4)
+        crit_round[effect] = test.critical(test.null(J_t, J_v), 0.01)
+        own = test.under(*_fitted(nuis, r_t, r_v, J_t, J_v))
+        crit_own[effect] = own.critical(own.null(J_t, J_v), 0.01)
+        stat[effect] = _statistic(nuis, r_t, r_v, J_t, J_v)
+    assert crit_round[3.0] > 20 * crit_round[0.0]  # the round's null grew with the effect
+    assert crit_own[3.0] == pytest.approx(crit_own[0.0], rel=0.5) and crit_own[0.0] == pytest.approx(crit_round[0.0], rel=0.5)
+    assert stat[3.0] > 20 * crit_own[3.0] and stat[1.0] > crit_own[1.0]
 
 
 @pytest.mark.parametrize("left", [0.5, 0.1])
