@@ -302,7 +302,9 @@ def diagnose_prepared(
         det = detectability(ev, last, ctx_all, cfg, cands, last_evidence, palp,
                             claimed=[c.kind for c, _, _ in claimed], confounded=confounded, refused=refused,
                             small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
-                                                                      f"how large each kind would have to be to show: {kind}"))
+                                                                      f"how large each kind would have to be to show: {kind}"),
+                            without=lambda kind: Round.build(ev, [e for e in fixed if e.get("kind") != kind], E_cur, cfg,
+                                                             cfg.seed + 200))
         lap("detectability")
         # E is refitted without them, and their fits go beside it as unclaimed causes
         claimed, reports, det, gone, said = withdraw(
