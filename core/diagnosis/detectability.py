@@ -22,7 +22,8 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
-from core.diagnosis.nuisance import FreeBeside, Nuisance, mesh_world, model_form_worlds
+from core.diagnosis.model_form import mesh_world, model_form_worlds
+from core.diagnosis.nuisance import FreeBeside, Nuisance
 from core.diagnosis.results import Detectability
 from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_dict
 
@@ -161,9 +162,9 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
     phantom of the model-form gap's plausible range made the data.
 
     The kind's change of the data is simulated in the replay's own physics and in each
-    model-form world (:func:`core.diagnosis.nuisance.model_form_worlds`: the base model
+    model-form world (:func:`core.diagnosis.model_form.model_form_worlds`: the base model
     with one of the neo-Hookean law, Poisson's ratio 0.38 or 0.485, Rayleigh damping 0.05
-    or 0.3 s, a 10x softer or 1.9x stiffer contact; and :func:`core.diagnosis.nuisance.mesh_world`,
+    or 0.3 s, a 10x softer or 1.9x stiffer contact; and :func:`core.diagnosis.model_form.mesh_world`,
     the fine mesh) as ``X_W = run(W + effect) - run(W)``,
     at ``size`` and scaled linearly. The test still fits the kind as the replay makes it
     (along its own signature D, beside the bounded nuisances), so where a world's change

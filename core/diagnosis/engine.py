@@ -29,10 +29,10 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    3.4 times, is kept), the true gravity and compliant-base claims' 1.30 and 1.46 times.
    A third check runs in the model-form worlds (the base model at the ends of its
    plausible range, one property at a time or all at once: damping, Poisson's ratio,
-   contact, law; :func:`core.diagnosis.nuisance.model_form_drops`), which the linear,
+   contact, law; :func:`core.diagnosis.model_form.model_form_drops`), which the linear,
    bounded nuisance directions can miss: added to each world that explains part of the
    residual, the fitted cause must still explain its critical value of the held-out data
-   (the nested test, :func:`core.diagnosis.nuisance.beyond_model_form`). A residual one of
+   (the nested test, :func:`core.diagnosis.model_form.beyond_model_form`). A residual one of
    them explains leaves it nothing there; a residual of another shape does not go away.
    The significant kind with the largest drop is claimed and the others are refitted on
    top of it (greedy forward selection), unless a rival explains as much or a larger,

@@ -274,7 +274,7 @@ def claim_check(statistic: float, critical: float, reproduced: dict, channels: d
        with a significant loss in another is the gap, not the kind.
 
     A third, in the model-form worlds, needs simulations and is run by the caller
-    (:func:`core.diagnosis.nuisance.beyond_model_form`): the fitted cause, added to each
+    (:func:`core.diagnosis.model_form.beyond_model_form`): the fitted cause, added to each
     phantom of the gap's plausible range that explains part of the residual, must still
     explain its critical value there.
 

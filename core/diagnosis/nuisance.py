@@ -43,17 +43,15 @@ E); the mesh direction, which needs fine-grid runs, is taken at the base model o
 from __future__ import annotations
 
 import copy
-import itertools
 import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
 
-from core.diagnosis.evidence import Evidence, Request, Spec
+from core.diagnosis.evidence import Evidence, Spec
 
-__all__ = ["Nuisance", "FreeBeside", "nuisance_columns", "model_form_ends", "beyond_model_form", "model_form_worlds", "mesh_world",
-           "model_form_drops", "VARIANTS", "BOUNDS"]
+__all__ = ["Nuisance", "FreeBeside", "nuisance_columns", "variant", "VARIANTS", "BOUNDS"]
 
 VARIANTS: dict[str, dict] = {
     "law": {"law": "stable_neo_hookean"},
@@ -250,182 +248,6 @@ def nuisance_columns(ev: Evidence, role: str, fixed: Sequence[dict], E: float,
         N = np.concatenate([N, D], axis=1)
         out += labels
     return N, out
-
-
-def _variant_ends(ev: Evidence) -> dict[str, list[tuple[str, dict]]]:
-    """{variant: [(label, Spec fields), ...]}: each numeric variant of :data:`VARIANTS` at
-    ``base + bound * (variant - base)`` for both of its :data:`BOUNDS`, the law at its
-    alternative (a law has no ends)."""
-    from core.simulation import SimulationConfig
-
-    sim0 = SimulationConfig()
-    out: dict[str, list[tuple[str, dict]]] = {}
-    for name in VARIANTS:
-        if name not in ev.cfg.nuisances:
-            continue
-        change = variant(name, ev.cfg)
-        lo, hi = BOUNDS[name]
-        if "law" in change:
-            out[name] = [(f"law {change['law']}", dict(change))]
-        elif "poisson_ratio" in change:
-            base, step = float(ev.cfg.poisson_ratio), float(change["poisson_ratio"]) - float(ev.cfg.poisson_ratio)
-            out[name] = [(f"Poisson's ratio {base + b * step:.3g}", {"poisson_ratio": base + b * step}) for b in (lo, hi)]
-        else:
-            (field_name, value), = change["simulation"]
-            base = float(getattr(sim0, field_name))
-            ends = [base + b * (float(value) - base) for b in (lo, hi)]
-            out[name] = [(f"{field_name} {v:.3g}", {"simulation": ((field_name, v),)}) for v in ends]
-    return out
-
-
-def model_form_worlds(ev: Evidence) -> list[tuple[str, dict]]:
-    """Each model-form variant of :data:`VARIANTS` alone at either end of its plausible
-    range, as ``(label, Spec fields)`` (Rayleigh stiffness damping 0.05 and 0.3 s, Poisson's
-    ratio 0.38 and 0.485, the contact 10x softer and 1.9x stiffer, the neo-Hookean law; 7
-    with the default nuisances): the phantoms a kind's detectability must hold for
-    (:mod:`core.diagnosis.detectability`)."""
-    return [end for ends in _variant_ends(ev).values() for end in ends]
-
-
-def mesh_world(ev: Evidence) -> tuple[str, dict] | None:
-    """The phantom as the fine mesh makes it, ``(label, Spec fields)`` of runs on
-    ``cfg.fine_grid`` (at ``cfg.fine_fit_dt``; a ``phantom.stl`` phantom's fine mesh is its
-    own at half the mean edge, :attr:`Evidence.fine_element_size`, and the label says so),
-    or None without the mesh nuisance or a fine grid. A world a kind's detectability must
-    hold for beside :func:`model_form_worlds`: a real phantom is a continuum, and where a
-    kind's change of the data is a feature of the replay's coarse mesh the fine mesh does
-    not make it. Measured on a lab session
-    (seed 77, a 10 mm probe recorded as 5 mm, Yeoh law on 19x7x7, force): a 5 mm larger
-    sphere's change of the data on 25x9x9 lies at cos 0.76 to the 13x5x5 replay's and
-    fitted along the replay's it explains -907 (chi2) of held-out data against the 5692
-    of the replay's own; every coarse world of :func:`model_form_worlds` kept 4310 or
-    more, and the diagnosis said "not found above 4.32 mm" of a 5 mm difference it missed."""
-    if "mesh" not in ev.cfg.nuisances or not ev.cfg.fine_grid:
-        return None
-    sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()
-    element = getattr(ev, "fine_element_size", None)  # a phantom.stl's fine mesh: half the mean edge
-    label = (f"the finer mesh ({element * 1e3:.2g} mm elements)" if element
-             else f"the {'x'.join(str(n) for n in ev.cfg.fine_grid)} mesh")
-    return label, ({"simulation": sim} if sim else {})
-
-
-def model_form_ends(ev: Evidence) -> list[tuple[str, dict]]:
-    """The model-form variants a claim must beat, as ``(label, Spec fields)``: each
-    variant alone at either end of its plausible range (Rayleigh stiffness damping 0.05
-    and 0.3 s, Poisson's ratio 0.38 and 0.485, the contact 10x softer and 1.9x stiffer,
-    the neo-Hookean law), then every corner of that box (each variant at one of its ends,
-    the law at either; 16 with the default nuisances). A real phantom differs in all of
-    them at once: on a no-effect field session damped at 0.233 s (Yeoh law, nu 0.474) no
-    single end reached a spurious clock offset's held-out drop (429 against 542), the
-    corner of the neo-Hookean law, 0.3 s, 0.485 and the soft contact did (1264)."""
-    per = _variant_ends(ev)
-    out = [end for ends in per.values() for end in ends]
-    if len(per) > 1:
-        choices = [ends + ([("", {})] if name == "law" else []) for name, ends in per.items()]
-        for combo in itertools.product(*choices):
-            fields: dict = {}
-            for _, f in combo:
-                for key, value in f.items():
-                    fields[key] = fields.get(key, ()) + value if key == "simulation" else value
-            labels = [label for label, _ in combo if label]
-            if len(labels) > 1:
-                out.append((", ".join(labels), fields))
-    return out
-
-
-def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisance",
-                     r_train: np.ndarray, r_validation: np.ndarray) -> dict[str, float]:
-    """{variant: T} the held-out drop of chi-square (units of :meth:`Evidence.vector` over
-    ``ev.sigma2``) that each model-form variant at the ends of its plausible range, alone or
-    at a corner of the box (:func:`model_form_ends`), brings to the model (``fixed``, E),
-    judged as a candidate is:
-    the bounded nuisances refitted on its train residual and carried over to validation.
-
-    The nuisance directions are the variants' linear changes at one step; the drop of a
-    variant at an end of its range is what that linearisation and its bounds miss (a
-    damping gap of a field session moved the held-out chi-square by -180 to +490 across the
-    range where the linear nuisance fitted its coefficient at the wrong bound). A cause is
-    claimed only for more than any of them explains. Diverged variants are left out.
-
-    Args:
-        ev: the evidence. fixed: effect dicts of the model. E: its Young's modulus, Pa.
-        nuis: the model's nuisance directions. r_train, r_validation: the model's residual vectors.
-    """
-    ends = model_form_ends(ev)
-    if not ends:
-        return {}
-    specs = [Spec(tuple(fixed), float(E), **fields) for _, fields in ends]
-    trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
-    out = {}
-    for (label, _), tr, va in zip(ends, trains, valids):
-        drop = nuis.held_out_drop((r_train, r_validation), (ev.vector(tr), ev.vector(va)))
-        if math.isfinite(drop):
-            out[label] = drop / ev.sigma2
-    return out
-
-
-BEYOND_CHUNK = 4
-"""Model-form worlds simulated together by :func:`beyond_model_form` (one executor map each):
-the worlds are tried in order of their drop and the test stops at the first that explains
-the candidate's residual, so most refusals cost one chunk."""
-
-
-def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisance", effects: Sequence[dict],
-                      drops: dict[str, float], critical: float) -> tuple[bool, str, float]:
-    """Whether a candidate still explains held-out data once the model is in each
-    model-form world that explains part of the residual (``drops``, :func:`model_form_drops`,
-    above zero): the nested test of the candidate beside the model-form gap.
-
-    In every such world the candidate's fitted ``effects`` are added to the model,
-    unchanged (not refitted there, which could only gain), and the held-out drop they
-    bring to the world is ``T_w = (|h_W|^2 - |h_{W+c}|^2) / sigma^2`` with the bounded
-    nuisances refitted on train (:meth:`Nuisance.held_out_drop`), as :func:`model_form_drops`
-    judges the world itself (the world's own runs are those, from the cache while it holds them). The candidate passes when ``T_w >=
-    critical`` (its own null's critical value) in every such world. A residual that one of
-    the worlds explains leaves the candidate nothing there (a damping gap taken up by a
-    Maxwell arm, a soft contact's shallow dent taken up by a downward robot offset); a
-    residual of another shape (a stiff spot under a few presses, where a law or a Poisson's
-    ratio changes the whole phantom's force) is still explained.
-
-    Why, instead of the bar before 2026-11-29 (a claim's drop had to exceed the best
-    world's): the two are drops of two different residuals. On a dome with force columns
-    (lab inclusion scenario seed 3, 4 x 12 s) the best world explained 7330 (chi2) while a
-    hidden stiff inclusion's fit explained 4379: no localised cause of a few presses could
-    pass a bar set by the whole phantom's force. And a cause above the bar may still be the
-    gap: on a no-effect field session without force (seed 1145, 4 x 6 s) a 3 mm sphere 31x
-    stiffer just under a pressed spot (a stiffer contact there) explained 881 against a
-    bar of 355 and was claimed.
-
-    Args:
-        ev: the evidence. fixed: effect dicts of the round's model. E: its Young's modulus, Pa.
-        nuis: the round's nuisances. effects: the candidate's fitted effect dicts.
-        drops: {variant label: its drop}, chi2. critical: the candidate's critical value, chi2.
-
-    Returns:
-        (passes, the variant that decided (the first that refused, else the one where the
-        candidate explained least; "" when no world explains any of the residual), the
-        candidate's drop in that world, chi2; -inf where a run diverged).
-    """
-    ends = dict(model_form_ends(ev))
-    worlds = [label for label, d in sorted(drops.items(), key=lambda kv: -kv[1]) if d > 0]
-    if not worlds:
-        return True, "", math.inf
-    least = ("", math.inf)
-    fixed = tuple(fixed)
-    for i in range(0, len(worlds), BEYOND_CHUNK):
-        chunk = worlds[i: i + BEYOND_CHUNK]
-        specs = ([Spec(fixed, float(E), **ends[w]) for w in chunk]
-                 + [Spec(fixed + tuple(effects), float(E), **ends[w]) for w in chunk])
-        trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
-        n = len(chunk)
-        for j, label in enumerate(chunk):
-            t_w = nuis.held_out_drop((ev.vector(trains[j]), ev.vector(valids[j])),
-                                     (ev.vector(trains[n + j]), ev.vector(valids[n + j]))) / ev.sigma2
-            if t_w < critical:
-                return False, label, t_w
-            if t_w < least[1]:
-                least = (label, t_w)
-    return True, least[0], least[1]
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ D-/A-optimal design on the Fisher information of each kind's size; Pukelsheim 20
    softer or stiffer contact) and the test fits it along the replay's signature; the
    least ``q`` of the replay and the worlds gives the prediction (:func:`_world_q`), as a
    claim must still explain its critical value in each world that explains part of the
-   residual (:func:`core.diagnosis.nuisance.beyond_model_form`). What the plan cannot
+   residual (:func:`core.diagnosis.model_form.beyond_model_form`). What the plan cannot
    predict is the model-form gap of the data it will record: the prediction is the
    noise's and the worlds' floor, and the diagnosis of the recorded session states the
    size that holds.
@@ -54,7 +54,8 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Spec
 from core.diagnosis.moves import Move, PlanError, PlanLimits, candidate_moves, move_path, surface_moves, within_duration
 from core.diagnosis.patches import field_layout
-from core.diagnosis.nuisance import mesh_world, model_form_worlds, nuisance_columns
+from core.diagnosis.model_form import mesh_world, model_form_worlds
+from core.diagnosis.nuisance import nuisance_columns
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
@@ -371,8 +372,8 @@ def _world_q(ev: Evidence, fixed: tuple, E: float, effect: dict, D: np.ndarray, 
 
     As the diagnosis states a kind's size (:func:`core.diagnosis.detectability._world_min_size`),
     the kind's change of the data is simulated in each model-form world ``W``
-    (:func:`core.diagnosis.nuisance.model_form_worlds`, and the fine mesh,
-    :func:`core.diagnosis.nuisance.mesh_world`, when ``ev`` keeps a fine grid) as
+    (:func:`core.diagnosis.model_form.model_form_worlds`, and the fine mesh,
+    :func:`core.diagnosis.model_form.mesh_world`, when ``ev`` keeps a fine grid) as
     ``X_W = run(W + effect) - run(W)``,
     per unit strength, with the nuisance directions projected out; the test fits the kind
     along its replay signature ``D`` (nuisances projected out too), which explains

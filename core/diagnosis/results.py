@@ -167,9 +167,9 @@ class Diagnosis:
     """What the diagnosis had to change from its configuration, and why (diagnosis.json ``notes``)."""
     model_form: dict | None = None
     """The last round's model-form worlds: {"drops": {variant: held-out chi2 drop}, "variant",
-    "bar"} (:func:`core.diagnosis.nuisance.model_form_drops`; "bar" the largest drop), when
+    "bar"} (:func:`core.diagnosis.model_form.model_form_drops`; "bar" the largest drop), when
     they were simulated (a kind of that round passed Holm's procedure and was held to them,
-    :func:`core.diagnosis.nuisance.beyond_model_form`); else None."""
+    :func:`core.diagnosis.model_form.beyond_model_form`); else None."""
 
     def answers(self) -> dict:
         """{kind: one of :data:`ANSWERS`} for every kind with a detectability statement."""

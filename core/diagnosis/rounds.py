@@ -21,7 +21,8 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check, reproduction
-from core.diagnosis.nuisance import Nuisance, beyond_model_form, model_form_drops
+from core.diagnosis.model_form import beyond_model_form, model_form_drops
+from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions, FieldRun
 from core.simulation.effects import FitSpace
 
@@ -46,7 +47,7 @@ class Round:
 
     def model_form(self, ev: Evidence) -> tuple[str, float]:
         """(variant, T): the model-form variant at an end of its plausible range with the
-        largest held-out drop on this round's model (:func:`core.diagnosis.nuisance.model_form_drops`),
+        largest held-out drop on this round's model (:func:`core.diagnosis.model_form.model_form_drops`),
         ("", 0.0) when none lowers it. Simulated once per round, when first asked."""
         if self._model_form is None:
             self._model_form = model_form_drops(ev, self.fixed, self.youngs_modulus, self.nuisance,
@@ -237,7 +238,7 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     ``cand``: "at_bound", answer "cannot tell"), then
     :func:`core.diagnosis.inference.claim_check` (reproduced at its fitted size, no channel
     made worse), then the nested test in the model-form worlds
-    (:func:`core.diagnosis.nuisance.beyond_model_form`):
+    (:func:`core.diagnosis.model_form.beyond_model_form`):
     "model_form" (answer "cannot tell") when one of them explains its residual.
 
     A fit at the edge of the range asked for more of the kind than a phantom plausibly

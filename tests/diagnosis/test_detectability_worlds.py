@@ -9,7 +9,8 @@ import pytest
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.detectability import _world_min_size
 from core.diagnosis.inference import HeldOutTest
-from core.diagnosis.nuisance import Nuisance, mesh_world, model_form_worlds
+from core.diagnosis.model_form import mesh_world, model_form_worlds
+from core.diagnosis.nuisance import Nuisance
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
 
 L = 60  # entries of a residual vector per role

@@ -437,7 +437,7 @@ def test_model_form_ends_are_the_nuisance_bounds_in_physical_units():
     from types import SimpleNamespace
 
     from core.diagnosis.config import NUISANCES
-    from core.diagnosis.nuisance import model_form_ends
+    from core.diagnosis.model_form import model_form_ends
 
     ev = SimpleNamespace(cfg=SimpleNamespace(nuisances=NUISANCES, poisson_ratio=0.44))
     every = dict(model_form_ends(ev))
@@ -518,7 +518,7 @@ def test_a_free_column_beside_bounded_nuisances_projects_as_the_concatenated_dir
 
 
 def test_the_nested_model_form_test_refuses_a_residual_a_world_explains_and_keeps_one_of_another_shape():
-    """core.diagnosis.nuisance.beyond_model_form on residuals made to order: a model-form
+    """core.diagnosis.model_form.beyond_model_form on residuals made to order: a model-form
     world (the neo-Hookean law) explains a large gap g; a second world (Poisson's ratio
     0.38) explains little of it; a third (0.485) makes the base worse. A candidate fitted
     to g is refused in the law's world (added there, it makes the held-out data worse),
@@ -528,7 +528,7 @@ def test_the_nested_model_form_test_refuses_a_residual_a_world_explains_and_keep
     from types import SimpleNamespace
 
     from core.diagnosis.config import NUISANCES
-    from core.diagnosis.nuisance import beyond_model_form, model_form_ends
+    from core.diagnosis.model_form import beyond_model_form, model_form_ends
 
     rng = np.random.default_rng(11)
     L = 600

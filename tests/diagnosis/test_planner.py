@@ -140,7 +140,7 @@ def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
     nuisance directions are projected out of the worlds' changes too, and the fine mesh
     (its runs on the fine grid, unshifted, its own base) is one of the worlds."""
     from core.diagnosis.config import DiagnosisConfig
-    from core.diagnosis.nuisance import mesh_world, model_form_worlds
+    from core.diagnosis.model_form import mesh_world, model_form_worlds
     from core.diagnosis.planner import _world_q
 
     rng = np.random.default_rng(3)
