@@ -440,9 +440,9 @@ def main() -> None:
     ap.add_argument("--method", choices=("exact", "fd", "both"), default="exact",
                     help="the fits' Jacobians: exact sensitivities (default), forward differences (the former "
                          "method), or both on every case")
-    ap.add_argument("--null", choices=("round", "candidate"), default="round",
-                    help="what the held-out test's bootstrap resamples: the round's residual (default) or each "
-                         "candidate's own (DiagnosisConfig.null_residual)")
+    ap.add_argument("--null", choices=("round", "candidate"), default=DiagnosisConfig().null_residual,
+                    help="what the held-out test's bootstrap resamples: each candidate's own fitted residual "
+                         "(the default) or the round's (DiagnosisConfig.null_residual)")
     args = ap.parse_args()
     methods = ("exact", "fd") if args.method == "both" else (args.method,)
 

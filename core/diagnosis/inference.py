@@ -7,7 +7,9 @@ validation chi-square from the model of the round to the model with the candidat
 with their nuisance coefficients carried over from train. Noise alone gives a ``T`` near
 or below zero; a cause that holds on held-out data gives a large one.
 
-**Its null distribution comes from the session itself.** Under "this kind is absent",
+**Its null distribution comes from the session itself**, resampled from the residual the
+candidate's fit leaves (``DiagnosisConfig.null_residual`` "candidate", :meth:`HeldOutTest.under`;
+or from the round's, which holds a real effect and grows with it: :meth:`HeldOutTest.null_with_effect`). Under "this kind is absent",
 linearised at the fit, ``T`` is a function of the train and validation noise:
 ``theta = (J'J)^-1 J' e_t`` (``J`` the candidate's signature on train without its
 nuisance part), ``r0 = e_v - N_v N_t^+ e_t`` (the held-out residual), and
