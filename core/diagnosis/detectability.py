@@ -71,7 +71,7 @@ POWER = 0.8
 
 
 def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: float, level: float,
-                     X_t: np.ndarray | None = None, X_v: np.ndarray | None = None, grows: bool = True):
+                     X_t: np.ndarray | None = None, X_v: np.ndarray | None = None, null: str = "round"):
     """``critical(s)``: the critical value a claim of a kind needs when the data hold
     strength ``s`` of the change ``X`` ((L_t,), (L_v,), per unit strength; default the
     kind's signature ``D``, its change in a model-form world otherwise) and the kind is
@@ -88,18 +88,30 @@ def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: f
     from the kind's own fit of more parameters, which takes up more of a resampled effect.
     (Scaled as a ratio instead, a critical value far above the one-column null's multiplied
     the growth: 3x the change's own statistic on a synthetic case, where the one-column
-    null reached 0.29 of it.) ``grows`` False (a null drawn from each fitted candidate's
-    own residual, ``DiagnosisConfig.null_residual`` "candidate"): ``critical`` at every ``s``."""
+    null reached 0.29 of it.)
+
+    ``null`` "candidate" (``DiagnosisConfig.null_residual``: the null drawn from the
+    residual each fitted candidate leaves): what grows the null is only the part of ``X``
+    that the fit along ``D`` leaves (its least-squares part along ``D`` on train, without
+    the nuisances, taken out on both roles): nothing for the replay's own signature, the
+    rest of a model-form world's change otherwise."""
     from core.diagnosis.inference import TAIL_MIN_COUNT
 
     test = rnd.test
-    if not grows:
-        return lambda s: critical
-    null = test.null_with_effect(D_t[:, None], D_v[:, None], D_t if X_t is None else X_t, D_v if X_v is None else X_v)
+    X_t = D_t if X_t is None else np.asarray(X_t, dtype=np.float64)
+    X_v = D_v if X_v is None else np.asarray(X_v, dtype=np.float64)
+    if null == "candidate":
+        Dp, Xp = test.train_signature(D_t[:, None])[:, 0], test.train_signature(X_t[:, None])[:, 0]
+        dd = float(Dp @ Dp)
+        c = float(Dp @ Xp) / dd if dd > 0 else 0.0
+        X_t, X_v = X_t - c * D_t, X_v - c * D_v
+        if not (np.any(X_t) or np.any(X_v)):
+            return lambda s: critical
+    grown = test.null_with_effect(D_t[:, None], D_v[:, None], X_t, X_v)
     lv = max(float(level), TAIL_MIN_COUNT / max(test.replicates, 1))
 
     def q(s: float) -> float:
-        return float(np.quantile(null(s), 1.0 - lv, method="higher"))
+        return float(np.quantile(grown(s), 1.0 - lv, method="higher"))
 
     q0 = q(0.0)
     return lambda s: critical + max(q(s) - q0, 0.0)
@@ -132,8 +144,8 @@ def _min_sizes(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, jobs: list[
             if sig is None or st == 0:
                 continue
             D_t, D_v = sig[0] / st, sig[1] / st
-            grows = ev.cfg.null_residual == "round"
-            s = rnd.test.min_strength(D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, grows=grows), s_max, POWER,
+            grown = growing_critical(rnd, D_t, D_v, critical, level, null=ev.cfg.null_residual)
+            s = rnd.test.min_strength(D_t, D_v, grown, s_max, POWER,
                                       expected=lambda s: _expected_statistic(rnd, D_t, D_v, s, ev.sigma2))
             if s is None:
                 found[j] = None
@@ -232,7 +244,7 @@ def _world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assume
         per = []
         for name, X_t, X_v in changes:
             s_w = rnd.test.min_strength(
-                D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, X_t, X_v, grows=ev.cfg.null_residual == "round"),
+                D_t, D_v, growing_critical(rnd, D_t, D_v, critical, level, X_t, X_v, null=ev.cfg.null_residual),
                 s_max, POWER,
                 expected=lambda s, X_t=X_t, X_v=X_v: _world_statistic(nuis, fit, X_t, X_v, s, ev.sigma2))
             if s_w is None:

@@ -375,7 +375,9 @@ class HeldOutTest:
         new._B = new._block_coefficients()
         return new
 
-    def _project(self, J: np.ndarray) -> np.ndarray:
+    def train_signature(self, J: np.ndarray) -> np.ndarray:
+        """(L_t, p) ``J - N_t N_t^+ J``: a train signature ``J`` (L_t, p) without its nuisance part
+        (the linear projection the null uses)."""
         if self.nuisance.size == 0:
             return J
         return J - self.nuisance.train @ (self.N_t_pinv @ J)
@@ -390,7 +392,7 @@ class HeldOutTest:
     def _replicates(self, J_t: np.ndarray, J_v: np.ndarray, shift: np.ndarray | None = None,
                     D_t: np.ndarray | None = None, D_v: np.ndarray | None = None) -> tuple:
         """Per-replicate pieces of the statistic for a signature J (p columns)."""
-        Jp = self._project(np.asarray(J_t, dtype=np.float64))
+        Jp = self.train_signature(np.asarray(J_t, dtype=np.float64))
         G = self.held_out_signature(J_t, J_v)
         A = _block_sums(Jp * self.e_train[:, None], self.blocks_train, self.nb_t)  # (nb_t, p)
         Gv = _block_sums(G * self.e_validation[:, None], self.blocks_validation, self.nb_v)  # (nb_v, p)
@@ -438,7 +440,7 @@ class HeldOutTest:
         J_v = np.asarray(J_v, dtype=np.float64).reshape(len(self.e_validation), -1)
         X_t = np.asarray(X_t, dtype=np.float64).reshape(len(self.e_train))
         X_v = np.asarray(X_v, dtype=np.float64).reshape(len(self.e_validation))
-        Jp = self._project(J_t)
+        Jp = self.train_signature(J_t)
         G = self.held_out_signature(J_t, J_v)
         Minv = np.linalg.pinv(Jp.T @ Jp)
         NG = self.nuisance.validation.T @ G if self.nuisance.size else None
@@ -452,7 +454,7 @@ class HeldOutTest:
             return theta, g
 
         th0, g0 = pieces(self.e_train, self.e_validation)
-        th1, g1 = pieces(self._project(X_t[:, None])[:, 0], self.held_out_signature(X_t[:, None], X_v[:, None])[:, 0])
+        th1, g1 = pieces(self.train_signature(X_t[:, None])[:, 0], self.held_out_signature(X_t[:, None], X_v[:, None])[:, 0])
         GG = G.T @ G
 
         def quad(a, b):

@@ -193,6 +193,30 @@ def test_min_strength_against_the_critical_value_that_grows_with_the_effect_is_c
     assert rate["fixed", 1.0] < rate["grown", 1.0], rate
 
 
+def test_under_the_candidates_null_only_what_its_fit_leaves_grows_the_critical_value():
+    """With the null drawn from each fitted candidate's residual, data holding the kind's
+    own signature leave nothing of it to the null: ``min_size``'s critical value stays the
+    no-effect one at any strength. A change of another shape (a model-form world's) leaves
+    its part off the signature, and that part grows it; the part along the signature does not."""
+    from types import SimpleNamespace
+
+    from core.diagnosis.detectability import growing_critical
+
+    nuis, r_t, r_v, J_t, J_v, b_t, b_v = _problem(np.random.default_rng(3), p=2)
+    rnd = SimpleNamespace(test=HeldOutTest(nuis, nuis.project(r_t), nuis.held_out(r_v, r_t), b_t, b_v, 1.0,
+                                           replicates=999, seed=5))
+    crit = 5.0
+    own = growing_critical(rnd, J_t[:, 0], J_v[:, 0], crit, 0.01, null="candidate")
+    assert own(0.0) == own(100.0) == crit
+    along = growing_critical(rnd, J_t[:, 0], J_v[:, 0], crit, 0.01, 2.0 * J_t[:, 0], 2.0 * J_v[:, 0], null="candidate")
+    assert along(100.0) == crit
+    other = growing_critical(rnd, J_t[:, 0], J_v[:, 0], crit, 0.01, J_t[:, 0] + J_t[:, 1], J_v[:, 0] + J_v[:, 1],
+                             null="candidate")
+    rounds = growing_critical(rnd, J_t[:, 0], J_v[:, 0], crit, 0.01, J_t[:, 0] + J_t[:, 1], J_v[:, 0] + J_v[:, 1])
+    assert other(0.0) == crit and other(3.0) > 2 * crit
+    assert rounds(3.0) > other(3.0)  # the round's null also holds the part the fit explains
+
+
 def test_the_null_of_a_fitted_candidate_does_not_grow_with_the_effect():
     """Drawn from the round's residual, the null holds the effect itself and its critical
     value grows with it as the statistic does (measured on a field session: gravity's 37.5
