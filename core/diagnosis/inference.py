@@ -346,13 +346,13 @@ class HeldOutTest:
         self.w_v = webb_weights(rng, self.replicates, self.nb_v)
         N_t = self.nuisance.train
         self.N_t_pinv = np.linalg.pinv(N_t) if N_t.shape[1] else np.zeros((0, N_t.shape[0]))
-        self._B = self._block_coefficients()
+        self._B = self._block_coefficients(self.e_train)
 
-    def _block_coefficients(self) -> np.ndarray:
-        """Per-block nuisance coefficients of the train residual: beta* = w_t @ B."""
+    def _block_coefficients(self, e_train: np.ndarray) -> np.ndarray:
+        """Per-block nuisance coefficients of a train residual ``e_train`` (L_t,): beta* = w_t @ B."""
         if not self.nuisance.train.shape[1]:
             return np.zeros((self.nb_t, 0))
-        return _block_sums((self.N_t_pinv * self.e_train[None, :]).T, self.blocks_train, self.nb_t)
+        return _block_sums((self.N_t_pinv * e_train[None, :]).T, self.blocks_train, self.nb_t)
 
     def under(self, e_train: np.ndarray, e_validation: np.ndarray) -> "HeldOutTest":
         """The same test (bootstrap weights, blocks, nuisances) drawing its null from the
@@ -372,7 +372,7 @@ class HeldOutTest:
         new = copy(self)
         new.e_train = np.asarray(e_train, dtype=np.float64)
         new.e_validation = np.asarray(e_validation, dtype=np.float64)
-        new._B = new._block_coefficients()
+        new._B = new._block_coefficients(new.e_train)
         return new
 
     def train_signature(self, J: np.ndarray) -> np.ndarray:
@@ -389,30 +389,38 @@ class HeldOutTest:
             return J_v
         return J_v - self.nuisance.validation @ (self.N_t_pinv @ J_t)
 
-    def _replicates(self, J_t: np.ndarray, J_v: np.ndarray, shift: np.ndarray | None = None,
-                    D_t: np.ndarray | None = None, D_v: np.ndarray | None = None) -> tuple:
+    def _resampled(self, Jp: np.ndarray, G: np.ndarray, Minv: np.ndarray, e_t: np.ndarray, e_v: np.ndarray,
+                   B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(theta (R, p), g (R, p)): per replicate, the train fit along ``Jp`` of the
+        resampled train residual ``e_t`` and the product ``e_v*' G`` of the resampled
+        held-out residual ``e_v`` (less the nuisance refit of the resampled train residual,
+        ``B`` its :meth:`_block_coefficients`). Both are linear in the residuals."""
+        theta = (self.w_t @ _block_sums(Jp * e_t[:, None], self.blocks_train, self.nb_t)) @ Minv
+        g = self.w_v @ _block_sums(G * e_v[:, None], self.blocks_validation, self.nb_v)
+        if self.nuisance.size:
+            g = g - (self.w_t @ B) @ (self.nuisance.validation.T @ G)
+        return theta, g
+
+    def _replicates(self, J_t: np.ndarray, J_v: np.ndarray) -> tuple:
         """Per-replicate pieces of the statistic for a signature J (p columns)."""
         Jp = self.train_signature(np.asarray(J_t, dtype=np.float64))
         G = self.held_out_signature(J_t, J_v)
-        A = _block_sums(Jp * self.e_train[:, None], self.blocks_train, self.nb_t)  # (nb_t, p)
-        Gv = _block_sums(G * self.e_validation[:, None], self.blocks_validation, self.nb_v)  # (nb_v, p)
-        M = Jp.T @ Jp
-        Minv = np.linalg.pinv(M)
-        theta = (self.w_t @ A) @ Minv  # (R, p)
-        g = self.w_v @ Gv  # (R, p): e_v*' G
-        if self.nuisance.size:
-            NG = self.nuisance.validation.T @ G  # (m, p)
-            g = g - (self.w_t @ self._B) @ NG
+        Minv = np.linalg.pinv(Jp.T @ Jp)
+        theta, g = self._resampled(Jp, G, Minv, self.e_train, self.e_validation, self._B)
         return theta, g, G, Jp, Minv
+
+    @staticmethod
+    def _mirrored(null: np.ndarray) -> np.ndarray:
+        """``null`` mirrored about zero where its median is below it: chance fits that cost
+        ``|m|`` on validation could as well gain it."""
+        return null - 2.0 * min(float(np.median(null)), 0.0)
 
     def null(self, J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
         """(R,) replicates of ``T`` (chi-square units) for a candidate with train and
         validation signatures ``J_t`` (L_t, p), ``J_v`` (L_v, p) under "absent"."""
         theta, g, G, _, _ = self._replicates(J_t, J_v)
         GG = G.T @ G
-        null = (2.0 * np.sum(g * theta, axis=1) - np.einsum("rp,pq,rq->r", theta, GG, theta)) / self.sigma2
-        # mirrored about zero: chance fits that cost |m| on validation could as well gain it
-        return null - 2.0 * min(float(np.median(null)), 0.0)
+        return self._mirrored((2.0 * np.sum(g * theta, axis=1) - np.einsum("rp,pq,rq->r", theta, GG, theta)) / self.sigma2)
 
     def null_with_effect(self, J_t: np.ndarray, J_v: np.ndarray, X_t: np.ndarray,
                          X_v: np.ndarray) -> Callable[[float], np.ndarray]:
@@ -443,18 +451,10 @@ class HeldOutTest:
         Jp = self.train_signature(J_t)
         G = self.held_out_signature(J_t, J_v)
         Minv = np.linalg.pinv(Jp.T @ Jp)
-        NG = self.nuisance.validation.T @ G if self.nuisance.size else None
-
-        def pieces(e_t, e_v):
-            theta = (self.w_t @ _block_sums(Jp * e_t[:, None], self.blocks_train, self.nb_t)) @ Minv
-            g = self.w_v @ _block_sums(G * e_v[:, None], self.blocks_validation, self.nb_v)
-            if NG is not None:
-                B = _block_sums((self.N_t_pinv * e_t[None, :]).T, self.blocks_train, self.nb_t)
-                g = g - (self.w_t @ B) @ NG
-            return theta, g
-
-        th0, g0 = pieces(self.e_train, self.e_validation)
-        th1, g1 = pieces(self.train_signature(X_t[:, None])[:, 0], self.held_out_signature(X_t[:, None], X_v[:, None])[:, 0])
+        th0, g0 = self._resampled(Jp, G, Minv, self.e_train, self.e_validation, self._B)
+        Xp = self.train_signature(X_t[:, None])[:, 0]
+        th1, g1 = self._resampled(Jp, G, Minv, Xp, self.held_out_signature(X_t[:, None], X_v[:, None])[:, 0],
+                                  self._block_coefficients(Xp))
         GG = G.T @ G
 
         def quad(a, b):
@@ -465,8 +465,7 @@ class HeldOutTest:
         c1 = quad((th0, g0), (th1, g1)) + quad((th1, g1), (th0, g0))
 
         def null(s: float) -> np.ndarray:
-            n = (c0 + s * c1 + s * s * c2) / self.sigma2
-            return n - 2.0 * min(float(np.median(n)), 0.0)
+            return self._mirrored((c0 + s * c1 + s * s * c2) / self.sigma2)
 
         return null
 

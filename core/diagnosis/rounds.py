@@ -232,7 +232,7 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
 
 
 def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
-                   cand: FitSpace | None = None) -> tuple[tuple[str, str] | None, dict | None]:
+                   cand: FitSpace) -> tuple[tuple[str, str] | None, dict | None]:
     """Whether a candidate whose held-out drop passed Holm's procedure is claimed: not when
     its fit sits at a bound of the kind's plausible range (:meth:`FitSpace.at_bound` of
     ``cand``: "at_bound", answer "cannot tell"), then
@@ -253,7 +253,7 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
         of the nested test for :class:`~core.diagnosis.results.CauseReport`
         ``model_form_nested``, None when it did not run).
     """
-    edges = cand.at_bound(e.fit.x) if cand is not None else []
+    edges = cand.at_bound(e.fit.x)
     if edges:
         return ("at_bound",
                 f"cannot tell from this data: its fit explained {e.statistic:.0f} (chi2) of the held-out residual "
