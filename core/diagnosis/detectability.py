@@ -22,6 +22,7 @@ import numpy as np
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
+from core.diagnosis.inference import TAIL_MIN_COUNT
 from core.diagnosis.model_form import mesh_world, model_form_worlds
 from core.diagnosis.nuisance import FreeBeside, Nuisance
 from core.diagnosis.results import Detectability
@@ -95,7 +96,6 @@ def growing_critical(rnd: "Round", D_t: np.ndarray, D_v: np.ndarray, critical: f
     that the fit along ``D`` leaves (its least-squares part along ``D`` on train, without
     the nuisances, taken out on both roles): nothing for the replay's own signature, the
     rest of a model-form world's change otherwise."""
-    from core.diagnosis.inference import TAIL_MIN_COUNT
 
     test = rnd.test
     X_t = D_t if X_t is None else np.asarray(X_t, dtype=np.float64)
