@@ -225,7 +225,10 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
     claimed causes refitted with it, in each model-form world
     (:func:`core.diagnosis.worlds.claimed_worlds`). Without force
     data :func:`core.identification.fit_youngs_modulus` fits E with the claimed effects (a
-    gravity at its physical 9.81 m/s^2, since the fit measures g / E); the unexcluded causes
+    gravity at its physical 9.81 m/s^2, since the fit measures g / E; a claimed compliant
+    base moving with E, since the surface measures its stiffness over E: held at its
+    fitted Pa/m it set E's scale, measured on field seed 82 with a hidden base and no force,
+    E 4.01 kPa, interval 2.14-5.10, for the lab's 6.11); the unexcluded causes
     are not carried there (that fit says itself when E cannot be identified, which without
     force it nearly always cannot).
 
@@ -283,12 +286,13 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
         if cfg.fit_youngs:
             fit = fit_youngs_modulus(
                 prepared, base=Trial(sequence="", youngs_modulus=1.0, poisson_ratio=cfg.poisson_ratio, grid=cfg.grid,
-                                     law=cfg.law, effects=tuple(fit_effects)),
+                                     law=cfg.law, effects=tuple(fit_effects), effects_youngs=youngs_modulus),
                 executor=executor, refine_mesh=cfg.refine_mesh, n_boot=cfg.n_boot, seed=cfg.seed)
             ev.simulations += fit.evaluations
             youngs = fit.to_json()["youngs_modulus"]
             if fit.identifiable:
                 E_ext = fit.coarse_value
-                effects = fit_effects
+                effects = [e.to_dict() for e in Trial(sequence="", youngs_modulus=E_ext, effects=tuple(fit_effects),
+                                                      effects_youngs=youngs_modulus).model_effects()]
     youngs["replay_grid_value_used"] = E_ext
     return youngs, E_ext, effects, claimed, worlds

@@ -346,7 +346,8 @@ def fit_youngs_modulus(
         from core.identification.model_form import youngs_model_form
 
         _say(progress, obj, "model form (force)")
-        model_form = youngs_model_form(prepared, base.effects, E_star, names=names, executor=executor,
+        at_star = [e.to_dict() for e in replace(base, youngs_modulus=E_star).model_effects()]
+        model_form = youngs_model_form(prepared, at_star, E_star, names=names, executor=executor,
                                        element_size=base.element_size)
         obj.evaluations += len(model_form["variants"]) * len(names)
         if model_form["low"] is not None:

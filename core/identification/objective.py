@@ -153,7 +153,8 @@ def _structurally_identifiable(base: Trial, use_force: bool) -> bool:
     """Whether anything in the data or the model sets a scale for E (Pa): measured force,
     a body force, or a foundation of fixed stiffness (Pa/m). Without them every
     quasi-static term is invariant to scaling E (stress ~ E strain, contact is a
-    displacement constraint), so only dynamics and damping remain -- the paper's flat
+    displacement constraint; a foundation fitted to the surface, ``Trial.effects_youngs``,
+    scales with E), so only dynamics and damping remain -- the paper's flat
     Table 2. Such a minimum is weak and carries the model-form error (measured: 30 kPa
     on a 5 kPa truth, 13x5x5 corotational against 25x9x9 neo-Hookean, 6 s sequences)."""
     if use_force:
@@ -162,7 +163,9 @@ def _structurally_identifiable(base: Trial, use_force: bool) -> bool:
         kind = dict(e).get("kind")
         if kind == "gravity" and any(float(v) != 0.0 for v in dict(e).get("g", (0.0, 0.0, -9.81))):
             return True
-        if kind == "base_compliance":
+        if kind == "base_compliance" and base.effects_youngs is None:
+            # a foundation of known stiffness; one fitted to the surface (effects_youngs)
+            # is known only over E and moves with it
             return True
     return False
 

@@ -30,6 +30,11 @@ class Trial:
         paper_error: measure the paper's point-to-mesh error on every frame (False: only
             the top-face residuals and the force, which is all the fit's default metric
             needs; the paper's error is ~80 % of a trial's time on a paper-size sequence).
+        effects_youngs: the E (Pa) at which ``effects`` were fitted to surface data, or
+            None (their parameters are absolute). Given, their stiffnesses move with E
+            (:meth:`~core.simulation.effects.Effect.at_youngs` with ``youngs_modulus /
+            effects_youngs``): surface data measure a foundation's stiffness over E, so such
+            a fitted stiffness does not set a scale for E.
     """
 
     sequence: str
@@ -42,6 +47,15 @@ class Trial:
     element_size: float | None = None
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
     paper_error: bool = True
+    effects_youngs: float | None = None
+
+    def model_effects(self) -> tuple:
+        """The effects the replay runs with (:class:`~core.simulation.effects.Effect`
+        objects): ``effects``, moved with E when ``effects_youngs`` is given."""
+        out = tuple(effect_from_dict(dict(e)) for e in self.effects)
+        if self.effects_youngs is not None:
+            out = tuple(e.at_youngs(self.youngs_modulus / self.effects_youngs) for e in out)
+        return out
 
     def replay_config(self) -> ReplayConfig:
         return ReplayConfig(
@@ -52,7 +66,7 @@ class Trial:
             law=self.law,
             stiffening=self.stiffening,
             simulation=self.simulation,
-            effects=tuple(effect_from_dict(dict(e)) for e in self.effects),
+            effects=self.model_effects(),
             sequences=(self.sequence,),
         )
 

@@ -191,6 +191,17 @@ class Effect:
         grid moves with it (:func:`core.simulation.timeloop.step_grid`), default 0."""
         return 0.0
 
+    def at_youngs(self, ratio: float) -> "Effect":
+        """This effect when E is scaled by ``ratio`` and only its parameters' ratios to E are
+        known (they were fitted to surface data, which measure a stiffness over E): the
+        same effect for a kind that scales with E or acts on the input; a fixed stiffness
+        (a foundation, Pa/m) scales with it. Gravity, a body force of known size, stays.
+
+        Args:
+            ratio: E_new / E at which the effect was fitted (> 0).
+        """
+        return self
+
     def to_dict(self) -> dict:
         """``{"kind": ..., **parameters}`` as in truth.json / diagnosis.json (lists, not arrays)."""
         out = {"kind": self.kind}

@@ -355,6 +355,10 @@ class BaseCompliance(Effect):
         builder.fixed[bottom] = False
         builder.support_stiffness[bottom] += self.stiffness * area[bottom]
 
+    def at_youngs(self, ratio):
+        # the surface measures stiffness / E (a softer gel on a softer pad sags the same)
+        return BaseCompliance(stiffness=float(self.stiffness) * float(ratio))
+
     def size(self, ctx):
         return 1.0 / float(self.stiffness)
 
