@@ -10,7 +10,10 @@ Public surface::
     path = generate_session(out, preset="small", seed=0, effects=[{"kind": "gravity"}])
 
 Modules: :mod:`core.lab.probing` (probe trajectories, random or given), :mod:`core.lab.camera`
-(depth camera model), :mod:`core.lab.generate` (orchestration, presets, truth.json),
+(depth camera model), :mod:`core.lab.generate` (orchestration, truth.json), :mod:`core.lab.config` (presets, the lab's
+configuration), :mod:`core.lab.phantom` (the phantom's shape, landmarks), :mod:`core.lab.truth`
+(the truth FEM runs), :mod:`core.lab.robot` (robot pose, calibration touches, recorded
+kinematics), :mod:`core.lab.rendering` (the camera placed for a seed, its frames),
 :mod:`core.lab.variation` (a randomised lab: truth and sensors drawn per seed),
 :mod:`core.lab.scenarios` (a hidden-effect session design per effect kind).
 """

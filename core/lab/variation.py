@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # generate.py imports this module
+if TYPE_CHECKING:  # core.lab.config imports this module
     from core.lab.generate import LabConfig
 
 __all__ = ["VARIATION_LAWS", "LabVariation", "apply_variation"]
