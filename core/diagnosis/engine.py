@@ -282,7 +282,8 @@ def diagnose_prepared(
         say(0.7, "refitting the claimed causes jointly")
         for i, (c, f, rep) in enumerate(list(claimed)):
             others = [e for j, (_, g, _) in enumerate(claimed) if j != i for e in g.effects]
-            g = fit_candidate(ev, c, others, E=E_cur, start=f.x[: nv[c.kind]], nuisance=last.nuisance)
+            g = fit_candidate(ev, c, others, E=E_cur, start=f.x[: nv[c.kind]], nuisance=last.nuisance,
+                              discrepancy=last.discrepancy)
             claimed[i] = (c, g, replace(rep, **fit_fields(c, g)))
     # final refit on the fine grid: the coarse signatures of local causes (a dent's
     # shift, a clock offset) are blurred by 6 x 10 mm elements (measured: a 0.15 s offset
@@ -304,7 +305,8 @@ def diagnose_prepared(
                             small=small, progress=lambda i, kind: say(0.8 + 0.1 * i / len(cfg.kinds),
                                                                       f"how large each kind would have to be to show: {kind}"),
                             without=lambda kind: Round.build(ev, [e for e in fixed if e.get("kind") != kind], E_cur, cfg,
-                                                             cfg.seed + 200))
+                                                             cfg.seed + 200),
+                            claimed_critical={c.kind: rep.critical for c, _, rep in claimed if rep.critical is not None})
         lap("detectability")
         # E is refitted without them, and their fits go beside it as unclaimed causes
         claimed, reports, det, gone, said = withdraw(

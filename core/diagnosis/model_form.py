@@ -107,7 +107,8 @@ def model_form_ends(ev: Evidence) -> list[tuple[str, dict]]:
 
 
 def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisance",
-                     r_train: np.ndarray, r_validation: np.ndarray) -> dict[str, float]:
+                     r_train: np.ndarray, r_validation: np.ndarray,
+                     discrepancy: dict | None = None) -> dict[str, float]:
     """{variant: T} the held-out drop of chi-square (units of :meth:`Evidence.vector` over
     ``ev.sigma2``) that each model-form variant at the ends of its plausible range, alone or
     at a corner of the box (:func:`model_form_ends`), brings to the model (``fixed``, E),
@@ -123,6 +124,8 @@ def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisa
     Args:
         ev: the evidence. fixed: effect dicts of the model. E: its Young's modulus, Pa.
         nuis: the model's nuisance directions. r_train, r_validation: the model's residual vectors.
+        discrepancy: the fine-minus-coarse fields those were corrected by, where not the
+            base model's (``Round.discrepancy``).
     """
     ends = model_form_ends(ev)
     if not ends:
@@ -131,7 +134,8 @@ def model_form_drops(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisa
     trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
     out = {}
     for (label, _), tr, va in zip(ends, trains, valids):
-        drop = nuis.held_out_drop((r_train, r_validation), (ev.vector(tr), ev.vector(va)))
+        drop = nuis.held_out_drop((r_train, r_validation),
+                                  (ev.vector(tr, discrepancy=discrepancy), ev.vector(va, discrepancy=discrepancy)))
         if math.isfinite(drop):
             out[label] = drop / ev.sigma2
     return out

@@ -24,7 +24,7 @@ from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check
 from core.diagnosis.model_form import beyond_model_form, model_form_drops
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions, FieldRun
-from core.simulation.effects import FitSpace
+from core.simulation.effects import EFFECT_KINDS, FitSpace
 
 __all__ = ["Round", "CandidateEvidence", "channel_masks", "TANGENT_BLOWUP", "trusted_columns", "assess_all", "judge",
            "beyond_verdict", "model_form_json"]
@@ -44,6 +44,7 @@ class Round:
     r_validation: np.ndarray
     chi2: float          # its held-out validation chi2
     _model_form: dict | None = None
+    discrepancy: dict | None = None  # its coarse runs' fine-minus-coarse fields, where not the base model's
 
     def model_form(self, ev: Evidence) -> tuple[str, float]:
         """(variant, T): the model-form variant at an end of its plausible range with the
@@ -51,20 +52,28 @@ class Round:
         ("", 0.0) when none lowers it. Simulated once per round, when first asked."""
         if self._model_form is None:
             self._model_form = model_form_drops(ev, self.fixed, self.youngs_modulus, self.nuisance,
-                                                self.r_train, self.r_validation)
+                                                self.r_train, self.r_validation, discrepancy=self.discrepancy)
         best = max(self._model_form.items(), key=lambda kv: kv[1], default=("", 0.0))
         return best if best[1] > 0 else ("", 0.0)
 
     @classmethod
     def build(cls, ev: Evidence, fixed: list, E: float, cfg: DiagnosisConfig, seed: int) -> "Round":
+        """The round of the model ``fixed`` at ``E`` (Pa): its nuisances, runs, residuals and
+        held-out test. When the model holds a cause that moves the contact
+        (``Effect.moves_contact``), its coarse runs are corrected by the mesh error measured
+        on it (:meth:`~core.diagnosis.evidence.Evidence.discrepancy_at`), not the base model's."""
         nuis = Nuisance.build(ev, fixed, E, cfg.nuisances)
         spec = Spec(tuple(fixed), float(E))
+        disc = None
+        if cfg.contact_relinearisations > 0 and any(EFFECT_KINDS[e["kind"]].moves_contact for e in fixed):
+            disc = ev.discrepancy_at(spec, ("train", "validation")) or None
         tr, va = ev.runs([spec], "train")[0], ev.runs([spec], "validation")[0]
-        r_t, r_v = ev.vector(tr), ev.vector(va)
+        r_t, r_v = ev.vector(tr, discrepancy=disc), ev.vector(va, discrepancy=disc)
         e_t, e_v = nuis.project(r_t), nuis.held_out(r_v, r_t)
         test = HeldOutTest(nuis.active(r_t), e_t, e_v, ev.blocks("train"), ev.blocks("validation"), ev.sigma2,
                            replicates=cfg.n_null, seed=seed)
-        return cls(list(fixed), float(E), nuis, test, tr, va, r_t, r_v, float(e_v @ e_v) / ev.sigma2)
+        return cls(list(fixed), float(E), nuis, test, tr, va, r_t, r_v, float(e_v @ e_v) / ev.sigma2,
+                   discrepancy=disc)
 
 
 @dataclass
@@ -124,12 +133,14 @@ def trusted_columns(J_t: np.ndarray, J_v: np.ndarray) -> np.ndarray:
 
 
 def validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: np.ndarray,
-                         r_v: np.ndarray, runs: list[FieldRun] | None) -> np.ndarray | None:
+                         r_v: np.ndarray, runs: list[FieldRun] | None,
+                         discrepancy: dict | None = None) -> np.ndarray | None:
     """(L_v, n) signature of ``cand`` at ``x`` on validation: the exact sensitivity (``runs``,
     the validation runs of :func:`held_out_requests`' jacobian request), or with
-    ``cfg.sensitivities`` False a forward difference."""
+    ``cfg.sensitivities`` False a forward difference (``discrepancy``: the fit's, as in
+    :meth:`~core.diagnosis.evidence.Evidence.vector`)."""
     if ev.cfg.sensitivities:
-        J = ev.jacobian(runs)
+        J = ev.jacobian(runs, discrepancy=discrepancy)
         return J if np.all(np.isfinite(J)) else None
     pts = []
     for j, h in enumerate(cand.steps):
@@ -142,7 +153,7 @@ def validation_jacobian(ev: Evidence, cand: FitSpace, fixed: list, E: float, x: 
         d = p[j] - x[j]
         if d == 0:
             return None
-        cols.append((ev.vector(r) - r_v) / d)
+        cols.append((ev.vector(r, discrepancy=discrepancy) - r_v) / d)
     J = np.stack(cols, axis=1)
     return J if np.all(np.isfinite(J)) else None
 
@@ -172,7 +183,7 @@ def assess_all(ev: Evidence, cands: dict[str, FitSpace], rnd: Round, cfg: Diagno
         if progress is not None:
             progress(i, kind)
         fits[kind] = fit_candidate(ev, cand, rnd.fixed, E=rnd.youngs_modulus, nuisance=rnd.nuisance,
-                                   start=starts.get(kind))
+                                   start=starts.get(kind), discrepancy=rnd.discrepancy)
     reqs = {kind: held_out_requests(ev, cand, rnd, fits[kind]) for kind, cand in cands.items()}
     flat = ev.runs_together([r for rs in reqs.values() for r in rs])
     out, at = {}, 0
@@ -189,8 +200,10 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
            jac_v: list[FieldRun] | None) -> CandidateEvidence:
     """A candidate's held-out evidence from its fit and the runs of :func:`held_out_requests`
     (``tr``, ``va``: the fitted model on train and validation; ``jac_v``: its validation
-    signature runs, or None); ``channels``: :func:`channel_masks` of the validation vector."""
-    r_t, r_v = ev.vector(tr), ev.vector(va)
+    signature runs, or None); ``channels``: :func:`channel_masks` of the validation vector.
+    The fitted model's coarse runs are corrected by the fit's discrepancy (``Fit.discrepancy``:
+    the round's, or for a kind that moves the contact the one measured at the fit)."""
+    r_t, r_v = ev.vector(tr, discrepancy=fit.discrepancy), ev.vector(va, discrepancy=fit.discrepancy)
     h = rnd.nuisance.held_out(r_v, r_t)
     e_v = rnd.nuisance.held_out(rnd.r_validation, rnd.r_train)
     if not np.all(np.isfinite(h)):
@@ -204,7 +217,8 @@ def judge(ev: Evidence, cand: FitSpace, rnd: Round, cfg: DiagnosisConfig, n_kind
     # change; a null without it let a fit far from linear pass with any held-out drop)
     cols_t, cols_v = [r_t - rnd.r_train], [r_v - rnd.r_validation]
     if fit.jacobian is not None:
-        J_v = validation_jacobian(ev, cand, rnd.fixed, rnd.youngs_modulus, fit.x[: len(cand.names)], r_v, jac_v)
+        J_v = validation_jacobian(ev, cand, rnd.fixed, rnd.youngs_modulus, fit.x[: len(cand.names)], r_v, jac_v,
+                                  discrepancy=fit.discrepancy)
         if J_v is not None:
             cols_t, cols_v = list(fit.jacobian[:, : len(cand.names)].T) + cols_t, list(J_v.T) + cols_v
     J_t, J_v = np.stack(cols_t, axis=1), np.stack(cols_v, axis=1)

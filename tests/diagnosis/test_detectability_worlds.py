@@ -31,7 +31,7 @@ class _Evidence:
         self.fine_runs += sum(len(r.models) for r in requests if r.fine)
         return [[(spec, req.role, req.fine) for spec in req.models] for req in requests]
 
-    def vector(self, run, shifted=True):
+    def vector(self, run, shifted=True, discrepancy=None):
         spec, role, fine = run
         v = np.full(L, 0.3 if fine else 0.1)  # the fine mesh's base differs from the coarse one
         for e in spec.effects:
@@ -47,7 +47,8 @@ def _round(rng):
     blocks = np.arange(L) // 6
     test = HeldOutTest(nuis, nuis.project(e_t), e_v, blocks, blocks, SIGMA2, replicates=999, seed=0)
     base = np.full(L, 0.1)
-    return SimpleNamespace(fixed=[], youngs_modulus=5000.0, nuisance=nuis, test=test, r_train=base, r_validation=base)
+    return SimpleNamespace(fixed=[], youngs_modulus=5000.0, nuisance=nuis, test=test, r_train=base, r_validation=base,
+                           discrepancy=None)
 
 
 @pytest.mark.parametrize("fine_grid", [(25, 9, 9), None])
@@ -56,9 +57,11 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     makes it too, the size is the replay's; when it makes half of it, a larger size is
     needed and the fine mesh is named; when its change is orthogonal to the replay's
     (after the nuisances), no size would be claimed ("cannot tell"). Without a fine grid
-    the fine mesh is no world and is never simulated."""
+    the fine mesh is no world and is never simulated. (The probe radius here is sized by
+    the coarse replay's change, as without ``contact_relinearisations``; with them it is
+    sized by the fine mesh's own, the next test.)"""
     rng = np.random.default_rng(5)
-    cfg = replace(DiagnosisConfig(), fine_grid=fine_grid)
+    cfg = replace(DiagnosisConfig(), fine_grid=fine_grid, contact_relinearisations=0)
     rnd = _round(rng)
     cls, ctx = EFFECT_KINDS["probe_radius"], PhantomContext(np.array([0.06, 0.04, 0.03]), probe_radius=0.005)
     D = {"train": rng.normal(size=L) * 100, "validation": rng.normal(size=L) * 100}
@@ -89,6 +92,26 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     ortho = _Evidence(cfg, D, u)
     size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     assert size is None and world == label
+
+
+def test_a_kind_that_moves_the_contact_is_sized_by_the_fine_mesh_s_own_change():
+    """A probe radius moves the contact (``Effect.moves_contact``): its fit measures the mesh
+    error again at its parameters, so the test fits it as the fine mesh makes it, and its
+    size is solved with the fine mesh's change as its signature. Where that change is half
+    the coarse replay's, the size is twice the one the whole change needs, and it is the
+    kind's own signature that sets it (no separate fine-mesh world is named)."""
+    rng = np.random.default_rng(5)
+    rnd = _round(rng)
+    cls, ctx = EFFECT_KINDS["probe_radius"], PhantomContext(np.array([0.06, 0.04, 0.03]), probe_radius=0.005)
+    assert cls.moves_contact and not EFFECT_KINDS["gravity"].moves_contact
+    D = {"train": rng.normal(size=L) * 100, "validation": rng.normal(size=L) * 100}
+    cfg = DiagnosisConfig()
+    assert cfg.fine_grid and cfg.contact_relinearisations > 0
+    whole, _ = _world_min_size(_Evidence(cfg, D, D), rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
+    half_ev = _Evidence(cfg, D, {r: 0.5 * v for r, v in D.items()})
+    half, world = _world_min_size(half_ev, rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
+    assert whole is not None and half == pytest.approx(2.0 * whole, rel=0.06)
+    assert world == "" and half_ev.fine_runs > 0
 
 
 def test_the_fine_mesh_of_a_phantom_stl_is_named_by_its_element_size():

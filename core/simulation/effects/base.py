@@ -186,6 +186,13 @@ class Effect:
     moves_clock: ClassVar[bool] = False
     """Whether the effect moves the probe input along time (:meth:`clock_shift`)."""
 
+    moves_contact: ClassVar[bool] = False
+    """Whether the effect moves where and how deep the probe presses (the probe's position
+    or size): a replay's mesh error, which grows with the press, then differs from the
+    model's without it, so a fine-minus-coarse discrepancy measured on that model does
+    not carry over (the diagnosis measures it again at the fit,
+    :meth:`core.diagnosis.evidence.Evidence.discrepancy_at`)."""
+
     def clock_shift(self) -> float:
         """How far (s) the effect moves the probe input along time: the replay's step
         grid moves with it (:func:`core.simulation.timeloop.step_grid`), default 0."""

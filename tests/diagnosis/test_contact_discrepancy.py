@@ -1,0 +1,84 @@
+"""The mesh error measured again at a fit that moves the contact (a robot offset, a probe
+radius): the coarse replay corrected by it is the fine mesh's, and a robot offset's fit is
+no longer held back by the base model's correction, which was measured on presses of
+another depth."""
+
+import json
+
+import numpy as np
+import pytest
+
+from core.diagnosis.candidates import phantom_context
+from core.diagnosis.config import DiagnosisConfig
+from core.diagnosis.evidence import Evidence, Spec
+from core.diagnosis.fitting import fit_candidate
+from core.diagnosis.patches import field_layout
+from core.diagnosis.rounds import Round
+from core.identification.execution import SerialExecutor
+from core.preparation import prepare_session
+from core.simulation.effects import EFFECT_KINDS
+from tests._presets import SHORT_SMALL
+
+OFFSET_Z = 0.004
+"""The hidden robot offset, m: the probe really is 4 mm above its calibrated position, so
+the recorded presses are 4 mm deeper than the real ones."""
+
+
+@pytest.fixture(scope="module")
+def offset_session(tmp_path_factory):
+    from core.lab import generate_session
+
+    return generate_session(tmp_path_factory.mktemp("lab") / "kin-s9", preset=SHORT_SMALL, seed=9,
+                            effects=[{"kind": "kinematic_offset", "offset": [0.0, 0.0, OFFSET_Z]}])
+
+
+def _evidence(session):
+    prepared = prepare_session(session)
+    cfg = DiagnosisConfig()
+    ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
+    assert ev.discrepancy(("train", "validation")) == []
+    return prepared, ev
+
+
+def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(offset_session):
+    """``discrepancy_at`` of the base model is the stored base discrepancy; of another model,
+    the coarse run corrected by it is that model's fine run exactly, where the base model's
+    correction leaves a difference that grows with the offset."""
+    _, ev = _evidence(offset_session)
+    base = ev.discrepancy_at(Spec((), ev.cfg.youngs_modulus), ("train", "validation"))
+    assert set(base) == set(ev.names["train"] + ev.names["validation"])
+    for name, d in base.items():
+        np.testing.assert_allclose(d, ev.delta[name], atol=1e-12)
+    moved = Spec(({"kind": "kinematic_offset", "offset": [0.0, 0.0, OFFSET_Z]},), ev.cfg.youngs_modulus)
+    disc = ev.discrepancy_at(moved, ("train",))
+    assert set(disc) == set(ev.names["train"])
+    coarse, fine = ev.runs([moved], "train")[0], ev.runs([moved], "train", fine=True)[0]
+    here, fine_v = ev.vector(coarse, discrepancy=disc), ev.vector(fine, shifted=False)
+    np.testing.assert_allclose(here, fine_v, atol=1e-9 * np.abs(fine_v).max())
+    off_by = np.linalg.norm(ev.vector(coarse) - fine_v) / np.linalg.norm(fine_v)
+    assert off_by > 0.05, off_by  # the base model's correction is another one here
+
+
+def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session):
+    """The coarse fit of a robot offset from no offset, the mesh error measured again at the
+    fit (``contact_relinearisations``), recovers the hidden 4 mm within a quarter and carries
+    the discrepancy at its parameters on train and validation. Measured here: 4.40 mm, and
+    3.89 mm with the base model's correction throughout (this lab's presses are shallow;
+    on field seed 11's stiffening lab that fit stopped at 0.77 mm of a 5 mm offset and the
+    diagnosis now claims 5.12 mm: README)."""
+    truth = json.loads((offset_session / "truth.json").read_text())["effects"][0]["offset"]
+    assert truth[2] == OFFSET_Z
+    prepared, ev = _evidence(offset_session)
+    noise = ev.runs([[]], "train", fine=True)[0] + ev.runs([[]], "validation", fine=True)[0]
+    ss, dof = np.sum([r.ss for r in noise], axis=0), np.sum([r.dof for r in noise], axis=0)
+    face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
+    ev.weigh_faces(face_sigma2, float(face_sigma2[0]))
+    rnd = Round.build(ev, [], ev.cfg.youngs_modulus, ev.cfg, 0)
+    cand = EFFECT_KINDS["kinematic_offset"].fit_space(phantom_context(prepared, ev.names["train"]))
+    held = fit_candidate(ev, cand, [], nuisance=rnd.nuisance, relinearise=0)
+    moved = fit_candidate(ev, cand, [], nuisance=rnd.nuisance)
+    z_held, z_moved = float(held.x[2]), float(moved.x[2])
+    assert held.discrepancy is None
+    assert set(moved.discrepancy) == set(ev.names["train"] + ev.names["validation"])
+    assert abs(z_moved - OFFSET_Z) < 0.25 * OFFSET_Z, (z_held, z_moved)
+    assert z_moved != z_held  # the fit did go on from the new correction
