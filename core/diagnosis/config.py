@@ -77,7 +77,7 @@ class DiagnosisConfig:
             explains, while a wrong kind's residual still holds it), or ``"round"``, the
             residual of the round's model without the candidate (it holds an effect that is
             there, so the null and the critical value grow with it, and ``min_size`` is
-            solved against that growth: :func:`core.diagnosis.detectability.growing_critical`).
+            solved against that growth: :func:`core.diagnosis.sizing.growing_critical`).
             Measured on fresh lab seeds, 4 x 6 s, with the claim-path checks of the same
             day: hidden-kind seed 82 with force, 2 of 8 named by "candidate" (gravity, the
             compliant base 3 % off) against 1 by "round", no spurious claim by either;

@@ -370,7 +370,7 @@ def _world_q(ev: Evidence, fixed: tuple, E: float, effect: dict, D: np.ndarray, 
     """(q, the world that set it or ""): the expected evidence per unit strength squared of
     ``effect`` when the phantom is any model-form world, not only the replay's physics.
 
-    As the diagnosis states a kind's size (:func:`core.diagnosis.detectability._world_min_size`),
+    As the diagnosis states a kind's size (:func:`core.diagnosis.sizing.world_min_size`),
     the kind's change of the data is simulated in each model-form world ``W``
     (:func:`core.diagnosis.model_form.model_form_worlds`, and the fine mesh,
     :func:`core.diagnosis.model_form.mesh_world`, when ``ev`` keeps a fine grid) as

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import _world_min_size
 from core.diagnosis.inference import HeldOutTest
 from core.diagnosis.model_form import mesh_world, model_form_worlds
 from core.diagnosis.nuisance import Nuisance
+from core.diagnosis.sizing import world_min_size
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
 
 L = 60  # entries of a residual vector per role
@@ -68,21 +68,21 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     critical = 50.0
 
     same = _Evidence(cfg, D, D)
-    base_size, world = _world_min_size(same, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
+    base_size, world = world_min_size(same, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     # every world ties (the label is whichever rounding made least)
     ties = ("", *[n for n, _ in model_form_worlds(same)], *(mesh_world(same) or ())[:1])
     assert base_size is not None and 0 < base_size < cls.max_size and world in ties
     if fine_grid is None:
         assert mesh_world(same) is None
         weak = _Evidence(cfg, D, {r: np.zeros(L) for r in D})
-        assert _world_min_size(weak, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)[0] == pytest.approx(base_size)
+        assert world_min_size(weak, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)[0] == pytest.approx(base_size)
         assert weak.fine_runs == 0
         return
     label = mesh_world(same)[0]
     assert label == "the 25x9x9 mesh" and same.fine_runs > 0
 
     half = _Evidence(cfg, D, {r: 0.5 * v for r, v in D.items()})
-    size, world = _world_min_size(half, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
+    size, world = world_min_size(half, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     assert world == label and size > 1.5 * base_size
 
     u = {r: rnd.nuisance.project(rng.normal(size=L)) for r in D}  # the nuisances leave the change whole
@@ -90,7 +90,7 @@ def test_a_not_found_size_holds_on_the_fine_mesh_or_cannot_be_told(fine_grid):
     u["train"] = u["train"] - d_t * (u["train"] @ d_t) / (d_t @ d_t)  # orthogonal to the fitted signature
     u["validation"] = np.zeros(L)  # and nothing of it along the signature on held-out data
     ortho = _Evidence(cfg, D, u)
-    size, world = _world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
+    size, world = world_min_size(ortho, rnd, cls, ctx, {"sign": 1.0}, 0.002, critical, LEVEL)
     assert size is None and world == label
 
 
@@ -107,9 +107,9 @@ def test_a_kind_that_moves_the_contact_is_sized_by_the_fine_mesh_s_own_change():
     D = {"train": rng.normal(size=L) * 100, "validation": rng.normal(size=L) * 100}
     cfg = DiagnosisConfig()
     assert cfg.fine_grid and cfg.contact_relinearisations > 0
-    whole, _ = _world_min_size(_Evidence(cfg, D, D), rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
+    whole, _ = world_min_size(_Evidence(cfg, D, D), rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
     half_ev = _Evidence(cfg, D, {r: 0.5 * v for r, v in D.items()})
-    half, world = _world_min_size(half_ev, rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
+    half, world = world_min_size(half_ev, rnd, cls, ctx, {"sign": 1.0}, 0.002, 50.0, LEVEL)
     assert whole is not None and half == pytest.approx(2.0 * whole, rel=0.06)
     assert world == "" and half_ev.fine_runs > 0
 

@@ -491,7 +491,7 @@ def test_a_kind_s_size_holds_for_a_world_whose_change_of_the_data_differs_from_t
     statistic is then the engine's T of that fit (checked against the fit itself); a world
     where the change is half of D needs twice the strength; a world whose change the fit
     along D cannot take up is never claimed (cannot tell)."""
-    from core.diagnosis.detectability import _world_statistic
+    from core.diagnosis.sizing import world_statistic
 
     rng = np.random.default_rng(6)
     nuis, r_t, r_v, J_t, J_v, b_t, b_v = _problem(rng, p=2)
@@ -501,14 +501,14 @@ def test_a_kind_s_size_holds_for_a_world_whose_change_of_the_data_differs_from_t
                    ("effect",) + nuis.names, np.full(nuis.size + 1, -np.inf), np.full(nuis.size + 1, np.inf))
     mixed_t, mixed_v = 0.7 * D_t + 0.7 * J_t[:, 1], 0.7 * D_v + 0.7 * J_v[:, 1]
     for s in (0.3, 2.0):
-        assert _world_statistic(nuis, fit, mixed_t, mixed_v, s, 1.0) == pytest.approx(
+        assert world_statistic(nuis, fit, mixed_t, mixed_v, s, 1.0) == pytest.approx(
             _statistic(nuis, s * mixed_t, s * mixed_v, D_t[:, None], D_v[:, None]), rel=1e-9)
     crit = test.critical(test.null(D_t[:, None], D_v[:, None]), 0.01)
-    own = test.min_strength(D_t, D_v, crit, 100.0, expected=lambda s: _world_statistic(nuis, fit, D_t, D_v, s, 1.0))
+    own = test.min_strength(D_t, D_v, crit, 100.0, expected=lambda s: world_statistic(nuis, fit, D_t, D_v, s, 1.0))
     assert own == pytest.approx(test.min_strength(D_t, D_v, crit, 100.0), rel=3e-3)
 
     def weakest(X_t, X_v):
-        return lambda s: min(_world_statistic(nuis, fit, D_t, D_v, s, 1.0), _world_statistic(nuis, fit, X_t, X_v, s, 1.0))
+        return lambda s: min(world_statistic(nuis, fit, D_t, D_v, s, 1.0), world_statistic(nuis, fit, X_t, X_v, s, 1.0))
 
     half = test.min_strength(D_t, D_v, crit, 100.0, expected=weakest(0.5 * D_t, 0.5 * D_v))
     assert half == pytest.approx(2.0 * own, rel=3e-3)
