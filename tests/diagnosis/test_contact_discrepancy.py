@@ -32,19 +32,26 @@ def offset_session(tmp_path_factory):
                             effects=[{"kind": "kinematic_offset", "offset": [0.0, 0.0, OFFSET_Z]}])
 
 
-def _evidence(session):
-    prepared = prepare_session(session)
-    cfg = DiagnosisConfig()
+@pytest.fixture(scope="module")
+def evidence(offset_session):
+    """(prepared session, Evidence with the base discrepancy and the faces weighed), shared
+    by the tests below (the fine runs of the base model are the slow part)."""
+    prepared = prepare_session(offset_session)
+    cfg = DiagnosisConfig(n_null=999)
     ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
     assert ev.discrepancy(("train", "validation")) == []
+    noise = ev.runs([[]], "train", fine=True)[0] + ev.runs([[]], "validation", fine=True)[0]
+    ss, dof = np.sum([r.ss for r in noise], axis=0), np.sum([r.dof for r in noise], axis=0)
+    face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
+    ev.weigh_faces(face_sigma2, float(face_sigma2[0]))
     return prepared, ev
 
 
-def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(offset_session):
+def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(evidence):
     """``discrepancy_at`` of the base model is the stored base discrepancy; of another model,
     the coarse run corrected by it is that model's fine run exactly, where the base model's
     correction leaves a difference that grows with the offset."""
-    _, ev = _evidence(offset_session)
+    _, ev = evidence
     base = ev.discrepancy_at(Spec((), ev.cfg.youngs_modulus), ("train", "validation"))
     assert set(base) == set(ev.names["train"] + ev.names["validation"])
     for name, d in base.items():
@@ -59,7 +66,7 @@ def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(offset_session)
     assert off_by > 0.05, off_by  # the base model's correction is another one here
 
 
-def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session):
+def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session, evidence):
     """The coarse fit of a robot offset from no offset, the mesh error measured again at the
     fit (``contact_relinearisations``), recovers the hidden 4 mm within a quarter and carries
     the discrepancy at its parameters on train and validation. Measured here: 4.40 mm, and
@@ -68,11 +75,7 @@ def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session):
     diagnosis now claims 5.12 mm: README)."""
     truth = json.loads((offset_session / "truth.json").read_text())["effects"][0]["offset"]
     assert truth[2] == OFFSET_Z
-    prepared, ev = _evidence(offset_session)
-    noise = ev.runs([[]], "train", fine=True)[0] + ev.runs([[]], "validation", fine=True)[0]
-    ss, dof = np.sum([r.ss for r in noise], axis=0), np.sum([r.dof for r in noise], axis=0)
-    face_sigma2 = np.where(dof > 0, ss / np.maximum(dof, 1), 0.0)
-    ev.weigh_faces(face_sigma2, float(face_sigma2[0]))
+    prepared, ev = evidence
     rnd = Round.build(ev, [], ev.cfg.youngs_modulus, ev.cfg, 0)
     cand = EFFECT_KINDS["kinematic_offset"].fit_space(phantom_context(prepared, ev.names["train"]))
     held = fit_candidate(ev, cand, [], nuisance=rnd.nuisance, relinearise=0)
