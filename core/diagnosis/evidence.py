@@ -268,8 +268,7 @@ class Evidence:
             TissueTwinError: the base model diverged on the replay's own mesh."""
         if not self.cfg.fine_grid:
             return []
-        runs = self.runs_together([Request([[]], role, fine=fine) for role in roles for fine in (False, True)])
-        pairs = [(c, f) for i in range(0, len(runs), 2) for c, f in zip(runs[i][0], runs[i + 1][0])]
+        pairs = self._coarse_and_fine([], roles)
         for c, _ in pairs:
             if not c.ok:
                 raise TissueTwinError(f"{self.prepared.path}: the base model diverged on {c.sequence}")
@@ -358,13 +357,12 @@ class Evidence:
         """
         if not self.cfg.fine_grid:
             return {}
+        return {c.sequence: f.field - c.field for c, f in self._coarse_and_fine(model, roles) if c.ok and f.ok}
+
+    def _coarse_and_fine(self, model: Spec | Sequence[dict], roles: Sequence[str]) -> list[tuple[FieldRun, FieldRun]]:
+        """[(coarse run, fine run)] of ``model`` on every sequence of ``roles``, all through one map."""
         runs = self.runs_together([Request([model], role, fine=fine) for role in roles for fine in (False, True)])
-        out = {}
-        for i in range(0, len(runs), 2):
-            for c, f in zip(runs[i][0], runs[i + 1][0]):
-                if c.ok and f.ok:
-                    out[c.sequence] = f.field - c.field
-        return out
+        return [(c, f) for i in range(0, len(runs), 2) for c, f in zip(runs[i][0], runs[i + 1][0])]
 
     def _shifted_force(self, r: FieldRun, shifted: bool) -> np.ndarray:
         """(F, 3) force of a run, N; a coarse run's (``shifted``) mapped onto the fine grid:

@@ -262,8 +262,9 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
         here.update(eng.discrepancy_at(model, ("train",) if i < rounds else ("train", "validation")))
         if i == rounds:
             return replace(fit, discrepancy=here)
-        fit = fit_candidate(eng, cand, fixed, E=fit.youngs_modulus if fit_youngs else E, fit_youngs=fit_youngs, start=fit.x[:nv], iterations=iterations,
-                            nuisance=nuisance, world=world, differences=differences, discrepancy=here, relinearise=0)
+        fit = fit_candidate(eng, cand, fixed, E=fit.youngs_modulus if fit_youngs else E, fit_youngs=fit_youngs,
+                            start=fit.x[:nv], iterations=iterations, nuisance=nuisance, world=world,
+                            differences=differences, discrepancy=here, relinearise=0)
         fit = replace(fit, starts=len(starts))
         sp = spec(fit.x)
     return fit

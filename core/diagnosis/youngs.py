@@ -26,7 +26,7 @@ from core.identification.model_form import force_youngs, youngs_model_form
 from core.identification.trials import Trial
 from core.identification.verdict import MAX_RATIO
 from core.preparation import PreparedSession
-from core.simulation.effects import FitSpace
+from core.simulation.effects import FitSpace, effect_from_dict
 
 __all__ = ["joint_youngs", "gravity_at_reported_youngs", "unexcluded_effects", "unexcluded_youngs",
            "youngs_of_extended", "with_untold_kinds"]
@@ -292,7 +292,6 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             youngs = fit.to_json()["youngs_modulus"]
             if fit.identifiable:
                 E_ext = fit.coarse_value
-                effects = [e.to_dict() for e in Trial(sequence="", youngs_modulus=E_ext, effects=tuple(fit_effects),
-                                                      effects_youngs=youngs_modulus).model_effects()]
+                effects = [effect_from_dict(dict(e)).at_youngs(E_ext / youngs_modulus).to_dict() for e in fit_effects]
     youngs["replay_grid_value_used"] = E_ext
     return youngs, E_ext, effects, claimed, worlds
