@@ -125,7 +125,7 @@ def _frames_off_axis(seq, T_phantom_robot: np.ndarray, size, count: int = 3) -> 
     a phantom of revolution leaves the camera's yaw to the instrument
     (:func:`core.registration.symmetry.resolve_yaw`), and an instrument near the axis
     cannot tell yaws apart. Frames at least 0.5 s apart."""
-    from core.registration.icp import probe_pose_phantom
+    from core.registration.instrument import probe_pose_phantom
 
     t = np.asarray(seq.frames.t, dtype=np.float64)
     centres, _ = probe_pose_phantom(seq.kinematics, t, T_phantom_robot)

@@ -17,18 +17,19 @@ Public surface:
   :func:`find_table_plane`, :func:`corner_points_phantom`, :func:`landmark_points_phantom`,
   :func:`apply_transform`.
 
+Modules: ``rigid`` (Kabsch, corner touches), ``landmarks`` (landmark touches),
+``cleaning`` (table, instrument and outlier removal; point and size checks),
+``icp`` (camera calibration by ICP), ``initial_pose`` (its automatic initial pose from the
+table and the footprint, and the table anchoring), ``instrument`` (the instrument's pose
+in the phantom frame and its support in raw frames), ``symmetry`` (the yaw a phantom of
+any shape leaves open).
+
 open3d is imported inside the functions that use it, so importing this package is cheap.
 """
 
 from core.registration.cleaning import CleanResult, TablePlane, clean_cloud, find_table_plane
-from core.registration.icp import (
-    CameraFit,
-    calibrate_camera,
-    instrument_hints,
-    instrument_support,
-    phantom_rest_surface,
-    probe_pose_phantom,
-)
+from core.registration.icp import CameraFit, calibrate_camera, phantom_rest_surface
+from core.registration.instrument import instrument_hints, instrument_support, probe_pose_phantom
 from core.registration.landmarks import calibrate_robot_landmarks, landmark_normals, landmark_points_phantom
 from core.registration.rigid import RigidFit, apply_transform, calibrate_robot, corner_points_phantom, kabsch
 

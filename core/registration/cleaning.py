@@ -24,6 +24,9 @@ the ones from the phantom. Then we subsample the points". Here with Open3D:
    ``open3d`` ``remove_statistical_outlier``).
 4. **Downsampling** -- ``voxel_down_sample`` when ``voxel_size > 0``, then a seeded
    random subsample to ``max_points``.
+
+Also the checks and conversions the registration modules share: :func:`as_points`,
+:func:`as_size` and :func:`o3d_cloud`.
 """
 
 from __future__ import annotations
@@ -34,7 +37,16 @@ import numpy as np
 
 from core.errors import CleaningError
 
-__all__ = ["CleanResult", "clean_cloud", "find_table_plane", "instrument_mask", "TablePlane"]
+__all__ = [
+    "CleanResult",
+    "clean_cloud",
+    "find_table_plane",
+    "instrument_mask",
+    "TablePlane",
+    "as_points",
+    "as_size",
+    "o3d_cloud",
+]
 
 
 @dataclass(frozen=True)
@@ -77,21 +89,60 @@ class TablePlane:
     support: int
 
 
-def _as_points(name: str, a) -> np.ndarray:
+def as_points(name: str, a) -> np.ndarray:
+    """``a`` as an (N, 3) float64 array of points (any frame, m), checked for shape only.
+
+    Non-finite rows are kept: the callers drop or count them.
+
+    Args:
+        name: how the argument is called in the error message.
+        a: array-like of shape (N, 3).
+
+    Returns:
+        (N, 3) float64 array (a copy only when ``a`` was not float64 already).
+
+    Raises:
+        ValueError: ``a`` is not two-dimensional with three columns.
+    """
     a = np.asarray(a, dtype=np.float64)
     if a.ndim != 2 or a.shape[1] != 3:
         raise ValueError(f"{name} must be (N, 3), got {a.shape}")
     return a
 
 
-def _as_size(phantom_size) -> np.ndarray:
+def as_size(phantom_size) -> np.ndarray:
+    """The phantom's box size ``(sx, sy, sz)`` as a (3,) float64 array, m.
+
+    Args:
+        phantom_size: array-like of three lengths, m (any shape that flattens to 3).
+
+    Returns:
+        (3,) float64 size, m; the box spans [0, sx] x [0, sy] x [0, sz] in the phantom frame.
+
+    Raises:
+        ValueError: not three values, or a value that is not > 0 (NaN included).
+    """
     size = np.asarray(phantom_size, dtype=np.float64).reshape(-1)
     if size.shape != (3,) or not np.all(size > 0):
         raise ValueError(f"phantom_size must be 3 positive lengths (m), got {phantom_size!r}")
     return size
 
 
-def _o3d_cloud(points: np.ndarray):
+def o3d_cloud(points: np.ndarray):
+    """An ``open3d.geometry.PointCloud`` holding ``points``.
+
+    open3d is imported here, so importing this module stays cheap.
+
+    Args:
+        points: (N, 3) points, m, in whatever frame the caller works in; converted to a
+            C-contiguous float64 copy for open3d.
+
+    Returns:
+        ``open3d.geometry.PointCloud`` with ``points`` set (no normals, no colours).
+
+    Raises:
+        RuntimeError: from open3d when ``points`` is not (N, 3).
+    """
     import open3d as o3d
 
     pcd = o3d.geometry.PointCloud()
@@ -107,7 +158,7 @@ def _segment_plane(points: np.ndarray, threshold: float, iterations: int, seed: 
     import open3d as o3d
 
     o3d.utility.random.seed(int(seed))
-    plane, inliers = _o3d_cloud(points).segment_plane(
+    plane, inliers = o3d_cloud(points).segment_plane(
         distance_threshold=float(threshold), ransac_n=3, num_iterations=int(iterations)
     )
     plane = np.asarray(plane, dtype=np.float64).reshape(4)
@@ -176,7 +227,7 @@ def find_table_plane(
     Raises:
         CleaningError: no plane qualifies as the table.
     """
-    pts = _as_points("points_camera", points_camera)
+    pts = as_points("points_camera", points_camera)
     remaining = np.arange(pts.shape[0])
     planes: list[tuple[np.ndarray, np.ndarray, int]] = []  # (plane, inliers, support)
     for k in range(max_planes):
@@ -281,7 +332,7 @@ def _statistical_inliers(q: np.ndarray, k: int, std_ratio: float, voxel: float) 
     For more than ``_DIRECT_MAX`` points and ``voxel > 0`` the filter runs on voxel centroids.
     """
     if q.shape[0] <= _DIRECT_MAX or voxel <= 0:
-        _, keep = _o3d_cloud(q).remove_statistical_outlier(nb_neighbors=k, std_ratio=std_ratio)
+        _, keep = o3d_cloud(q).remove_statistical_outlier(nb_neighbors=k, std_ratio=std_ratio)
         mask = np.zeros(q.shape[0], dtype=bool)
         mask[np.asarray(keep, dtype=np.int64)] = True
         return mask
@@ -355,11 +406,11 @@ def clean_cloud(
         ValueError: malformed arguments.
         CleaningError: fewer than ``min_points`` phantom points are left.
     """
-    pts = _as_points("points_camera", points_camera)
+    pts = as_points("points_camera", points_camera)
     T = np.asarray(T_phantom_camera, dtype=np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"T_phantom_camera must be (4, 4), got {T.shape}")
-    size = _as_size(phantom_size)
+    size = as_size(phantom_size)
     counts = {"raw": int(pts.shape[0]), "invalid": 0, "table": 0, "instrument": 0, "outliers": 0,
               "downsampled": 0, "kept": 0}
 
@@ -417,7 +468,7 @@ def clean_cloud(
     # 4. downsampling
     n_before = q.shape[0]
     if voxel_size > 0:
-        q = np.asarray(_o3d_cloud(q).voxel_down_sample(float(voxel_size)).points, dtype=np.float64)
+        q = np.asarray(o3d_cloud(q).voxel_down_sample(float(voxel_size)).points, dtype=np.float64)
     if max_points is not None and q.shape[0] > max_points:
         if max_points < 1:
             raise ValueError(f"max_points must be >= 1, got {max_points}")

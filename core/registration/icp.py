@@ -3,7 +3,7 @@
 Wu et al. 2020, Sec. 3.3: "we extract the point cloud of the phantom without any robot
 interaction [and] find the transformation between the phantom and that point cloud using
 iterative closest point (ICP) [Besl & McKay 1992] ... Since the top of the block is flat
-and featureless, we manually initialize the registration". Here:
+and featureless, we manually initialize the registration". Here (:func:`calibrate_camera`):
 
 * ICP is point-to-plane (Chen & Medioni 1992) from ``open3d.pipelines.registration``,
   coarse to fine (10, 5, 3 mm correspondence distance), source = the cleaned reference
@@ -11,32 +11,39 @@ and featureless, we manually initialize the registration". Here:
   normals (:func:`phantom_rest_surface`, phantom frame).
 * Manual initialisation (``picked``): a few camera points and the phantom points they
   show, aligned by :func:`core.registration.rigid.kabsch`.
-* Automatic initialisation: the table is found by RANSAC (:func:`find_table_plane`), the
-  phantom is the largest DBSCAN cluster (Ester et al. 1996) standing on it; the phantom's
-  z-axis is the table normal (facing the camera), its x/y axes and centre come from the
-  minimum-area rectangle around the cluster's footprint on the table (rotating calipers,
-  Toussaint 1983), and its origin from the box size. The four yaw candidates (0, 90, 180,
-  270 deg about the vertical axis) are each refined by ICP; for a box, two of them (180
-  deg apart) fit the geometry equally well -- a box is symmetric under that rotation, so
-  no cloud of the box alone can tell them apart. They are disambiguated with ``hints``:
-  raw camera frames with the instrument in view, whose phantom-frame pose is known from
-  the robot's kinematics and ``T_phantom_robot``. Under the right candidate the raw
-  points that lie outside the phantom fall on the instrument's sphere and shaft; under
-  the wrong one they do not (:func:`instrument_support`; the winner needs >= 10 points
-  and twice the runner-up's). If the hints do not decide, a :class:`RegistrationError`
-  asks for picked points.
+* Automatic initialisation (:mod:`core.registration.initial_pose`): the table by RANSAC,
+  the phantom as the largest DBSCAN cluster standing on it, and four candidate poses
+  (yaw 0, 90, 180, 270 deg about the vertical axis) from the minimum-area rectangle
+  around its footprint (rotating calipers). Each candidate is refined by ICP; for a box,
+  two of them (180 deg apart) fit the geometry equally well -- a box is symmetric under
+  that rotation, so no cloud of the box alone can tell them apart. They are
+  disambiguated with ``hints`` (:mod:`core.registration.instrument`): raw camera frames
+  with the instrument in view, whose phantom-frame pose is known from the robot's
+  kinematics and ``T_phantom_robot``. Under the right candidate the raw points that lie
+  outside the phantom fall on the instrument's sphere and shaft; under the wrong one
+  they do not (:func:`instrument_support`; the winner needs >= 10 points and twice the
+  runner-up's). If the hints do not decide, a :class:`RegistrationError` asks for picked
+  points. With a ``phantom.stl`` of any shape, the yaw the shape leaves open is scanned
+  instead (:func:`core.registration.symmetry.resolve_yaw`).
+* After ICP, z = 0 and the tilt are taken from the table plane (``anchor_table``,
+  :func:`core.registration.initial_pose.anchor_to_table`): the top may sag.
+
+:func:`probe_pose_phantom`, :func:`instrument_hints` and :func:`instrument_support`
+live in :mod:`core.registration.instrument` and are re-exported here.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
 from core.errors import CleaningError, RegistrationError
-from core.registration.cleaning import _as_points, _as_size, _o3d_cloud, find_table_plane, instrument_mask
+from core.registration.cleaning import as_points, as_size, o3d_cloud
+from core.registration.initial_pose import anchor_to_table, auto_inits, check_footprint, phantom_cluster
+from core.registration.instrument import Hint, instrument_hints, instrument_support, probe_pose_phantom
 from core.registration.rigid import apply_transform, kabsch
 from core.registration.symmetry import resolve_yaw
 
@@ -52,8 +59,6 @@ __all__ = [
 #: Correspondence distances of the coarse-to-fine ICP stages, m; the last one also
 #: defines ``fitness`` (about 3 sigma of the SR300's depth noise).
 _ICP_STAGES = (0.010, 0.005, 0.003)
-
-Hint = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -112,7 +117,7 @@ def phantom_rest_surface(
         raise ValueError(f"spacing must be > 0 m, got {spacing}")
     if stl_path is not None:
         return _stl_surface(Path(stl_path), spacing)
-    sx, sy, sz = _as_size(phantom_size)
+    sx, sy, sz = as_size(phantom_size)
 
     def grid(a: float, b: float) -> tuple[np.ndarray, np.ndarray]:
         u = np.linspace(0.0, a, max(2, int(np.ceil(a / spacing)) + 1))
@@ -154,192 +159,7 @@ def _stl_surface(path: Path, spacing: float) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(pts, dtype=np.float64), np.asarray(sub.face_normals[face], dtype=np.float64)
 
 
-# --------------------------------------------------------------------------- kinematics
-
-
-def probe_pose_phantom(kinematics, t: np.ndarray, T_phantom_robot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Probe sphere centres and tool z-axes at times ``t``, phantom frame.
-
-    Positions are linearly interpolated, orientations spherically (Slerp); times outside
-    the kinematics' range are clamped to its ends.
-
-    Args:
-        kinematics: object with ``t`` (K,) s, ``position`` (K, 3) robot frame m and
-            ``quaternion`` (K, 4) xyzw (``core.io`` ``Kinematics``).
-        t: (M,) query times, s, same clock.
-        T_phantom_robot: (4, 4) robot calibration (:func:`calibrate_robot`).
-
-    Returns:
-        centres (M, 3) float64 m and unit tool z-axes (M, 3) float64 (shaft -> tip),
-        phantom frame.
-    """
-    from scipy.spatial.transform import Rotation, Slerp
-
-    kt = np.asarray(kinematics.t, dtype=np.float64).reshape(-1)
-    pos = np.asarray(kinematics.position, dtype=np.float64).reshape(-1, 3)
-    quat = np.asarray(kinematics.quaternion, dtype=np.float64).reshape(-1, 4)
-    tq = np.clip(np.atleast_1d(np.asarray(t, dtype=np.float64)), kt[0], kt[-1])
-    centre_robot = np.stack([np.interp(tq, kt, pos[:, k]) for k in range(3)], axis=1)
-    if kt.size >= 2:
-        rot = Slerp(kt, Rotation.from_quat(quat))(tq)
-    else:
-        rot = Rotation.from_quat(np.repeat(quat[:1], tq.size, axis=0))
-    z_robot = rot.as_matrix()[:, :, 2]
-    T = np.asarray(T_phantom_robot, dtype=np.float64)
-    return apply_transform(T, centre_robot), z_robot @ T[:3, :3].T
-
-
-def instrument_hints(sequence, T_phantom_robot: np.ndarray, frames: Iterable[int] = (0, 1, 2)) -> list[Hint]:
-    """Build ``hints`` for :func:`calibrate_camera` from raw frames of one sequence.
-
-    Args:
-        sequence: object with ``kinematics`` (see :func:`probe_pose_phantom`), ``frames.t``
-            (M,) s and ``cloud(i)`` -> (N, 3) camera-frame points (``core.io`` ``Sequence``).
-        T_phantom_robot: (4, 4) robot calibration.
-        frames: frame indices to use. The instrument must be in view; frames where the
-            probe is low (touching the phantom) discriminate best: high above the
-            phantom's centre, the shaft of the symmetric twin can cross the real one.
-
-    Returns:
-        list of ``(points_camera (N, 3), probe_centre_phantom (3,), shaft_axis_phantom (3,))``.
-    """
-    idx = [int(i) for i in frames]
-    t = np.asarray(sequence.frames.t, dtype=np.float64)[idx]
-    centres, axes = probe_pose_phantom(sequence.kinematics, t, T_phantom_robot)
-    return [(np.asarray(sequence.cloud(i), dtype=np.float64), centres[k], axes[k]) for k, i in enumerate(idx)]
-
-
-def instrument_support(
-    T_phantom_camera: np.ndarray,
-    hints: Sequence[Hint],
-    phantom_size,
-    *,
-    probe_radius: float = 0.005,
-    shaft_radius: float = 0.0045,
-    tolerance: float = 0.003,
-) -> int:
-    """How many raw hint points a candidate calibration puts on the instrument.
-
-    Counts the points that, mapped by ``T_phantom_camera``, lie inside the instrument
-    (sphere + shaft grown by ``tolerance``) but outside the rest box grown by
-    ``tolerance`` and above the table (z > 5 mm) -- points the phantom or the table
-    cannot explain. Under a wrong candidate the instrument's points land elsewhere.
-    """
-    size = _as_size(phantom_size)
-    T = np.asarray(T_phantom_camera, dtype=np.float64)
-    total = 0
-    for points_camera, centre, axis in hints:
-        pts = _as_points("hint points_camera", points_camera)
-        pts = pts[np.all(np.isfinite(pts), axis=1)]
-        q = apply_transform(T, pts)
-        g = tolerance
-        in_box = ((q[:, 0] > -g) & (q[:, 0] < size[0] + g) & (q[:, 1] > -g) & (q[:, 1] < size[1] + g)
-                  & (q[:, 2] < size[2] + g))
-        free = ~in_box & (q[:, 2] > 0.005)
-        on_tool = instrument_mask(q[free], centre, axis, probe_radius=probe_radius,
-                                  shaft_radius=shaft_radius, margin=tolerance)
-        total += int(np.count_nonzero(on_tool))
-    return total
-
-
 # --------------------------------------------------------------------------- ICP helpers
-
-
-def _phantom_cluster(points_camera: np.ndarray, size: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Phantom points (M, 3) of a camera-frame reference cloud and the table plane (4,), camera frame.
-
-    Table by RANSAC (:func:`find_table_plane`), phantom = largest DBSCAN cluster standing on it.
-    """
-    from scipy.spatial import cKDTree
-
-    pts = points_camera[np.all(np.isfinite(points_camera), axis=1)]
-    if pts.shape[0] > 30000:
-        pts = np.asarray(_o3d_cloud(pts).voxel_down_sample(0.001).points)
-    table = find_table_plane(pts, phantom_height=float(size[2]), seed=seed)
-    n, d = table.plane[:3], table.plane[3]
-    h = pts @ n + d
-    cand = pts[(h > 0.003) & (h < size[2] + 0.01)]
-    if cand.shape[0] < 20:
-        raise CleaningError(f"only {cand.shape[0]} points stand on the table; expected the phantom")
-    nn = cKDTree(cand).query(cand, k=2)[0][:, 1]
-    eps = float(np.clip(3.0 * np.median(nn), 0.003, 0.01))
-    labels = np.asarray(_o3d_cloud(cand).cluster_dbscan(eps=eps, min_points=5), dtype=np.int64)
-    if labels.max(initial=-1) < 0:
-        raise CleaningError("no cluster of points stands on the table; expected the phantom")
-    largest = np.bincount(labels[labels >= 0]).argmax()
-    return cand[labels == largest], table.plane
-
-
-def _min_area_rectangle(p2: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum-area rectangle of 2-D points (rotating calipers over the convex hull edges).
-
-    Returns centre (2,), unit long axis (2,), extents (2,) (long, short).
-    """
-    from scipy.spatial import ConvexHull
-
-    hull = p2[ConvexHull(p2).vertices]
-    edges = np.roll(hull, -1, axis=0) - hull
-    angles = np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2))
-    best = None
-    for a in angles:
-        u = np.array([np.cos(a), np.sin(a)])
-        v = np.array([-u[1], u[0]])
-        pu, pv = hull @ u, hull @ v
-        area = np.ptp(pu) * np.ptp(pv)
-        if best is None or area < best[0]:
-            centre = u * (pu.max() + pu.min()) / 2 + v * (pv.max() + pv.min()) / 2
-            ext = np.array([np.ptp(pu), np.ptp(pv)])
-            best = (area, centre, u, v, ext)
-    _, centre, u, v, ext = best
-    if ext[1] > ext[0]:
-        u, ext = v, ext[::-1]
-    return centre, u, ext
-
-
-def _auto_inits(cluster: np.ndarray, plane: np.ndarray, size: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
-    """Four ``T_phantom_camera`` candidates (yaw 0/90/180/270 deg) from table + footprint.
-
-    Also returns the footprint rectangle's extents (2,) (long, short), m.
-    """
-    z = plane[:3] / np.linalg.norm(plane[:3])  # up, toward the camera
-    e1 = np.cross(z, [1.0, 0.0, 0.0])
-    if np.linalg.norm(e1) < 0.1:
-        e1 = np.cross(z, [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(z, e1)
-    h = cluster @ z + plane[3]
-    base = cluster - np.outer(h, z)  # projected onto the table
-    p2 = np.c_[base @ e1, base @ e2]
-    c2, u2, extents = _min_area_rectangle(p2)
-    origin_on_table = -plane[3] * z  # the point of the plane closest to the camera origin
-    centre = origin_on_table + c2[0] * e1 + c2[1] * e2 - ((origin_on_table @ e1) * e1 + (origin_on_table @ e2) * e2)
-    long_axis = u2[0] * e1 + u2[1] * e2
-    inits = []
-    for k in range(4):
-        a = k * np.pi / 2
-        x = np.cos(a) * long_axis + np.sin(a) * np.cross(z, long_axis)
-        y = np.cross(z, x)
-        R_cam_ph = np.c_[x, y, z]
-        o = centre - R_cam_ph @ np.array([size[0] / 2, size[1] / 2, 0.0])
-        T_cam_ph = np.eye(4)
-        T_cam_ph[:3, :3], T_cam_ph[:3, 3] = R_cam_ph, o
-        inits.append(np.linalg.inv(T_cam_ph))
-    return inits, extents
-
-
-def _check_footprint(extents: np.ndarray, size: np.ndarray, tolerance: float = 0.2,
-                     smaller_tolerance: float | None = None) -> None:
-    """Raise when the phantom's footprint on the table differs from ``size`` by more than
-    ``tolerance`` (larger) or ``smaller_tolerance`` (smaller; default ``tolerance``). A
-    curved phantom's lower flanks on the far side are hidden from the camera, so its
-    seen footprint is smaller than its bounding box (a dome's by 7-26 % in our lab)."""
-    expected = np.sort(size[:2])[::-1]
-    lower = tolerance if smaller_tolerance is None else smaller_tolerance
-    if np.any(extents > (1 + tolerance) * expected) or np.any(extents < (1 - lower) * expected):
-        raise RegistrationError(
-            f"the phantom in the reference cloud measures {extents[0] * 1e3:.1f} x {extents[1] * 1e3:.1f} mm "
-            f"on the table, expected {expected[0] * 1e3:.1f} x {expected[1] * 1e3:.1f} mm (phantom_size); "
-            "wrong phantom_size, or the phantom is not fully in view")
 
 
 class _Target:
@@ -350,7 +170,7 @@ class _Target:
         from scipy.spatial import cKDTree
 
         self.points, self.normals = points, normals
-        self.pcd = _o3d_cloud(points)
+        self.pcd = o3d_cloud(points)
         self.pcd.normals = o3d.utility.Vector3dVector(normals)
         self.tree = cKDTree(points)
         self.top = points[normals[:, 2] > 0.9]
@@ -386,33 +206,6 @@ def _icp(source_pcd, target: _Target, T_init: np.ndarray) -> np.ndarray:
                                    reg.ICPConvergenceCriteria(max_iteration=40))
         T = np.asarray(res.transformation, dtype=np.float64)
     return T
-
-
-def _anchor_to_table(T: np.ndarray, plane_camera: np.ndarray, size: np.ndarray) -> np.ndarray:
-    """Correct ``T_phantom_camera`` so the table plane (camera frame, normal towards the
-    phantom) maps to z = 0 with normal +z: the smallest rotation about the footprint's
-    centre, then a shift along z. x, y and yaw keep the ICP estimate.
-    """
-    n_cam, d_cam = plane_camera[:3], plane_camera[3]
-    R, t = T[:3, :3], T[:3, 3]
-    n = R @ n_cam
-    p0 = R @ (-d_cam * n_cam) + t  # a table point in the phantom frame
-    z = np.array([0.0, 0.0, 1.0])
-    axis = np.cross(n, z)
-    s_, c_ = np.linalg.norm(axis), float(n @ z)
-    C = np.eye(3)
-    if s_ > 1e-12:
-        k = axis / s_
-        K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        C = np.eye(3) + s_ * K + (1 - c_) * (K @ K)
-    pivot = np.array([size[0] / 2, size[1] / 2, 0.0])
-    A = np.eye(4)
-    A[:3, :3] = C
-    A[:3, 3] = pivot - C @ pivot
-    T_new = A @ T
-    p0_new = A[:3, :3] @ p0 + A[:3, 3]
-    T_new[2, 3] -= p0_new[2]
-    return T_new
 
 
 def _same_pose(A: np.ndarray, B: np.ndarray, deg: float = 5.0, metres: float = 0.005) -> bool:
@@ -481,8 +274,8 @@ def calibrate_camera(
             the automatic initialisation cannot resolve the phantom's symmetry (give
             ``hints`` with the instrument in view, or ``picked`` points).
     """
-    ref = _as_points("reference_camera", reference_camera)
-    size = _as_size(phantom_size)
+    ref = as_points("reference_camera", reference_camera)
+    size = as_size(phantom_size)
     r_probe = 0.005 if probe_radius is None else float(probe_radius)
     notify = callback or (lambda stage, info: None)
     target = _Target(*phantom_rest_surface(size, stl_path))
@@ -494,7 +287,7 @@ def calibrate_camera(
 
     if picked is not None:
         pc, pp = picked
-        pc, pp = _as_points("picked points_camera", pc), _as_points("picked points_phantom", pp)
+        pc, pp = as_points("picked points_camera", pc), as_points("picked points_phantom", pp)
         if pc.shape != pp.shape or pc.shape[0] < 3:
             raise ValueError(f"picked needs K >= 3 pairs of (K, 3) points, got {pc.shape} and {pp.shape}")
         try:
@@ -508,8 +301,8 @@ def calibrate_camera(
         T_init = init.T
         plane = None
         try:
-            source, plane = _phantom_cluster(ref, size, seed)
-            _check_footprint(_auto_inits(source, plane, size)[1], size)
+            source, plane = phantom_cluster(ref, size, seed)
+            check_footprint(auto_inits(source, plane, size)[1], size)
         except CleaningError:  # no table in view: crop around the picked pose instead
             q = apply_transform(T_init, ref[np.all(np.isfinite(ref), axis=1)])
             g = 0.01
@@ -519,20 +312,20 @@ def calibrate_camera(
         if source.shape[0] < 20:
             raise RegistrationError(f"only {source.shape[0]} reference points near the picked pose")
         notify("segmented", {"points": int(source.shape[0])})
-        T = _icp(_o3d_cloud(source), target, T_init)
+        T = _icp(o3d_cloud(source), target, T_init)
         fitness, rms, res = target.evaluate(T, source, final)
         coverage = target.coverage(T, source, final)
         method = "picked"
     else:
         try:
-            source, plane = _phantom_cluster(ref, size, seed)
+            source, plane = phantom_cluster(ref, size, seed)
         except CleaningError as exc:
             raise RegistrationError(f"automatic initialisation failed: {exc}; pick points instead") from exc
         notify("segmented", {"points": int(source.shape[0])})
-        inits, extents = _auto_inits(source, plane, size)
-        _check_footprint(extents, size, smaller_tolerance=None if stl_path is None else 0.4)
+        inits, extents = auto_inits(source, plane, size)
+        check_footprint(extents, size, smaller_tolerance=None if stl_path is None else 0.4)
         inits = [shift @ T0 for T0 in inits]
-        src_pcd = _o3d_cloud(source)
+        src_pcd = o3d_cloud(source)
         results = []  # (T_init, T, fitness, rms, residuals, coverage)
         for T0 in inits:
             T = _icp(src_pcd, target, T0)
@@ -551,7 +344,7 @@ def calibrate_camera(
         if stl_path is not None:  # any shape: scan the yaw its symmetry may leave open
             # a curved top can slide along itself under ICP: level the pose on the table
             # first, so that the scan turns about the true vertical
-            T_level = _anchor_to_table(best[1], plane, size) if anchor_table else best[1]
+            T_level = anchor_to_table(best[1], plane, size) if anchor_table else best[1]
             T_turned = resolve_yaw(T_level, hints or [], target.points, target.normals, target.tree,
                                    lambda T: target.evaluate(T, source, final)[0], probe_radius=r_probe,
                                    shaft_radius=shaft_radius)
@@ -590,7 +383,7 @@ def calibrate_camera(
     if anchor_table and plane is not None:
         # The bottom is fixed on the table, so the table defines z = 0 and the tilt; the
         # top may sag (gravity) or bulge, and ICP onto the nominal box would absorb that.
-        T = _anchor_to_table(T, plane, size)
+        T = anchor_to_table(T, plane, size)
         fitness, rms, res = target.evaluate(T, source, final)
         coverage = target.coverage(T, source, final)
         anchored = True

@@ -44,7 +44,7 @@ def surface_instrument_support(T: np.ndarray, hints: Sequence, surface_points: n
                                tree, *, probe_radius: float, shaft_radius: float, tolerance: float = 0.003) -> int:
     """How many raw hint points ``T`` (4, 4) ``T_phantom_camera`` puts on the instrument
     and not on (or in) the rest phantom: the STL counterpart of
-    :func:`core.registration.icp.instrument_support`.
+    :func:`core.registration.instrument.instrument_support`.
 
     Args:
         hints: ``(points_camera (N, 3), probe_centre_phantom (3,), shaft_axis_phantom (3,))``.
