@@ -457,7 +457,7 @@ def _force_evidence(prepared: PreparedSession, use_force: bool | None):
 
     The noise is the RMS of each axis over rest frames (probe clear of the phantom for a
     second), where the true force is zero, floored at 1 mN as the E fit's
-    (``core.identification.fit._force_noise``).
+    (:func:`core.identification.objective.force_noise`).
 
     Returns:
         ({sequence: (F, 3) N} or None, (3,) N or None, note: why force is (not) used).

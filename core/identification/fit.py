@@ -46,12 +46,12 @@ from scipy.optimize import minimize_scalar
 from core.errors import TissueTwinError
 from core.identification.execution import Executor, SerialExecutor
 from core.identification.objective import (  # the objective and its pieces moved there (issue 19)
-    _bootstrap,
-    _calibration_shift,
-    _force_noise,
-    _Objective,
-    _structurally_identifiable,
-    _top_noise,
+    Objective,
+    bootstrap_argmin,
+    calibration_shift,
+    force_noise,
+    structurally_identifiable,
+    top_noise,
 )
 from core.identification.sweep import PAPER_COARSE
 from core.identification.trials import Trial, run_trial
@@ -59,6 +59,7 @@ from core.identification.verdict import MAX_RATIO, MIN_RISE, widen_interval, you
 from core.preparation import PreparedSession
 from core.simulation.meshing import refined_element_size
 from core.simulation.replay import noise_floor, replay_mesh
+
 __all__ = ["FitResult", "fit_youngs_modulus", "refined_grid"]
 
 Progress = Callable[[float, str], None]
@@ -194,8 +195,8 @@ def _surface_model_form(prepared: PreparedSession, names, base: Trial, executor:
     """
     out, evaluations = [], 0
     for v in _surface_variants():
-        obj = _Objective(prepared, names, replace(base, law=v.law, poisson_ratio=v.poisson_ratio), executor, False,
-                         d0, None, progress, metric)
+        obj = Objective(prepared, names, replace(base, law=v.law, poisson_ratio=v.poisson_ratio), executor, False,
+                        d0, None, progress, metric)
         r = minimize_scalar(obj, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded",
                             options={"xatol": 0.004})
         evaluations += obj.evaluations
@@ -206,7 +207,7 @@ def _surface_model_form(prepared: PreparedSession, names, base: Trial, executor:
             "channel": "surface", "evaluations": evaluations}
 
 
-def _say(progress: Progress | None, obj: _Objective, stage: str) -> None:
+def _say(progress: Progress | None, obj: Objective, stage: str) -> None:
     """Report the stage the fit enters (``progress(n_evaluated_E, message)``)."""
     if progress:
         progress(len(obj.cache), f"{stage} ({obj.evaluations} replays so far)")
@@ -255,15 +256,15 @@ def fit_youngs_modulus(
         raise TissueTwinError("the session has no 'train' sequence to fit on")
     has_force = all(prepared.sequences[n].force is not None for n in names)
     use_force = has_force if use_force is None else (use_force and has_force)
-    d0 = (_top_noise(prepared, names, base.grid, base.element_size) if metric == "top"
+    d0 = (top_noise(prepared, names, base.grid, base.element_size) if metric == "top"
           else noise_floor(prepared, base.grid, mesh=replay_mesh(prepared, base.grid, base.element_size)))
     if not np.isfinite(d0) or d0 <= 0:
         d0 = 1e-3
-    f0 = _force_noise(prepared, names) if use_force else None
+    f0 = force_noise(prepared, names) if use_force else None
     # the objective's trials measure only what J needs: the paper's per-frame error (most of
     # a paper-size trial's time) is measured once, at the fitted E, for the errors per role
     scored = replace(base, paper_error=metric == "paper")
-    obj = _Objective(prepared, names, scored, executor, use_force, d0, f0, progress, metric)
+    obj = Objective(prepared, names, scored, executor, use_force, d0, f0, progress, metric)
 
     lo, hi = math.log10(bounds[0]), math.log10(bounds[1])
     coarse = [E for E in PAPER_COARSE if bounds[0] <= E <= bounds[1]] or [10 ** ((lo + hi) / 2)]
@@ -287,11 +288,11 @@ def fit_youngs_modulus(
     J = np.array([r[1] for r in rows])
     J_star = obj.terms(E_star)[0]
 
-    boot = _bootstrap(obj, Es, n_boot, seed, block=1.0)
+    boot = bootstrap_argmin(obj, Es, n_boot, seed, block=1.0)
     lo_b, hi_b = (float(v) for v in np.percentile(boot, [2.5, 97.5]))
 
     # identifiability: the one rule of core.identification.verdict (the sweep applies it too)
-    structural = _structurally_identifiable(base, use_force)
+    structural = structurally_identifiable(base, use_force)
     d_star = obj.terms(E_star)[1]
     rule = dict(structural=structural, bootstrap=(lo_b, hi_b), E_star=E_star, J_star=J_star, min_rise=min_rise,
                 max_ratio=max_ratio, residual=d_star, metric=metric, use_force=use_force)
@@ -300,7 +301,7 @@ def fit_youngs_modulus(
     shift = 0.0
     if verdict["identifiable"] and math.isfinite(probe_sigma) and probe_sigma > 0:
         _say(progress, obj, "calibration shift")
-        shift, n_cal = _calibration_shift(obj, E_star, probe_sigma)
+        shift, n_cal = calibration_shift(obj, E_star, probe_sigma)
         obj.evaluations += n_cal
         verdict = youngs_verdict(Es, J, calibration_shift=shift, **rule)
     identifiable, reason = verdict["identifiable"], verdict["reason"]
@@ -316,7 +317,7 @@ def fit_youngs_modulus(
     if identifiable and refine_mesh:
         fine_base = replace(scored, element_size=sizes[1]) if stl else replace(scored, grid=refined)
         _say(progress, obj, "refit on the refined mesh")
-        fine = _Objective(prepared, names, fine_base, executor, use_force, d0, f0, progress, metric)
+        fine = Objective(prepared, names, fine_base, executor, use_force, d0, f0, progress, metric)
         r2 = minimize_scalar(fine, bounds=(math.log10(E_star) - 0.3, math.log10(E_star) + 0.3), method="bounded", options={"xatol": 0.004})
         refined_value = float(10.0**r2.x)
         obj.evaluations += fine.evaluations

@@ -91,24 +91,24 @@ def test_gravity_in_truth_and_model_pins_down_youngs_modulus(tmp_path):
 def test_only_force_gravity_or_a_fixed_foundation_set_a_scale_for_E():
     """Structural identifiability: scaling E scales every quasi-static stress, so only a
     measured force, a body force or a foundation of fixed stiffness can pin E."""
-    from core.identification.fit import _structurally_identifiable
+    from core.identification.objective import structurally_identifiable
 
     def trial(*effects):
         return Trial(sequence="", youngs_modulus=1.0, effects=effects)
 
-    assert not _structurally_identifiable(trial(), use_force=False)
-    assert _structurally_identifiable(trial(), use_force=True)
-    assert _structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, -9.81]}), use_force=False)
-    assert not _structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, 0]}), use_force=False)
-    assert _structurally_identifiable(trial({"kind": "base_compliance", "stiffness": 1e5}), use_force=False)
+    assert not structurally_identifiable(trial(), use_force=False)
+    assert structurally_identifiable(trial(), use_force=True)
+    assert structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, -9.81]}), use_force=False)
+    assert not structurally_identifiable(trial({"kind": "gravity", "g": [0, 0, 0]}), use_force=False)
+    assert structurally_identifiable(trial({"kind": "base_compliance", "stiffness": 1e5}), use_force=False)
     for kind in ("friction", "viscoelasticity", "inclusion", "probe_radius", "time_offset", "kinematic_offset"):
-        assert not _structurally_identifiable(trial({"kind": kind}), use_force=False)
+        assert not structurally_identifiable(trial({"kind": kind}), use_force=False)
     # a foundation fitted to the surface is known over E only (Trial.effects_youngs): no scale
     fitted = Trial(sequence="", youngs_modulus=1.0, effects=({"kind": "base_compliance", "stiffness": 1e5},),
                    effects_youngs=5e3)
-    assert not _structurally_identifiable(fitted, use_force=False)
-    assert _structurally_identifiable(replace(fitted, effects=fitted.effects + ({"kind": "gravity", "g": [0, 0, -9.81]},)),
-                                      use_force=False)
+    assert not structurally_identifiable(fitted, use_force=False)
+    assert structurally_identifiable(replace(fitted, effects=fitted.effects + ({"kind": "gravity", "g": [0, 0, -9.81]},)),
+                                     use_force=False)
 
 
 def test_a_foundation_fitted_to_the_surface_moves_with_E(small_session):

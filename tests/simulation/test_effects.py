@@ -205,6 +205,23 @@ def test_effects_round_trip_through_their_dicts():
         assert effect_from_dict(e.to_dict()) == e
 
 
+def test_only_a_nonzero_gravity_or_a_fixed_foundation_sets_a_scale_for_E():
+    """Effect.sets_youngs_scale, which the E fit's structural identifiability asks: a body
+    force of known size (any nonzero g, the default g when absent) or a foundation of fixed
+    stiffness; a foundation fitted to the surface moves with E, gravity does not."""
+    from core.simulation.effects import EFFECT_KINDS
+
+    setting = {k for k, cls in EFFECT_KINDS.items() if cls.sets_youngs_scale(cls().to_dict())}
+    assert setting == {"gravity", "base_compliance"}
+    gravity, base = EFFECT_KINDS["gravity"], EFFECT_KINDS["base_compliance"]
+    assert gravity.sets_youngs_scale({"kind": "gravity"})
+    assert gravity.sets_youngs_scale({"kind": "gravity", "g": [0.0, 0.5, 0.0]})
+    assert not gravity.sets_youngs_scale({"kind": "gravity", "g": [0, 0, 0]})
+    assert gravity.sets_youngs_scale({"kind": "gravity"}, fitted_over_youngs=True)
+    assert base.sets_youngs_scale({"kind": "base_compliance", "stiffness": 1e5})
+    assert not base.sets_youngs_scale({"kind": "base_compliance", "stiffness": 1e5}, fitted_over_youngs=True)
+
+
 def test_a_fitted_gravity_stays_within_its_tilt_of_straight_down():
     """The gravity fit space keeps g within MAX_TILT_DEG of -z (a phantom rests on its
     support): vectors inside the cone are kept, others go to the cone's nearest point

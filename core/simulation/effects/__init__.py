@@ -12,8 +12,10 @@ A kind's class is
   (the ``detectability`` table), :meth:`Effect.sized` an effect of a given size with the
   parameters a detectability statement assumes (:meth:`Effect.assumptions`);
 - **a role**: ``acts_on`` ("body": the truth FEM carries it; "input": it changes the
-  probe input and the recorded kinematics) and ``scales_with_youngs`` (whether the
-  model's displacements stay unchanged and its forces scale with E when E scales);
+  probe input and the recorded kinematics), ``scales_with_youngs`` (whether the
+  model's displacements stay unchanged and its forces scale with E when E scales) and
+  :meth:`Effect.sets_youngs_scale` (whether an instance sets a scale for E without force
+  data, which the E fit's structural identifiability asks);
 - **an example**: :meth:`Effect.example`, a detectable instance for the virtual lab.
 
 The diagnosis, the planner and the lab read these declarations; a ninth kind is one new

@@ -209,6 +209,25 @@ class Effect:
         """
         return self
 
+    @classmethod
+    def sets_youngs_scale(cls, effect: dict, *, fitted_over_youngs: bool = False) -> bool:
+        """Whether the effect, as given in a session's or trial's effect dict, sets a scale
+        for E (Pa) without force data: a nonzero body force (gravity) or a foundation of
+        fixed stiffness in Pa/m (base compliance). Every other kind leaves the quasi-static
+        model invariant to scaling E (:attr:`scales_with_youngs`) and sets none (default False).
+
+        Args:
+            effect: ``{"kind": cls.kind, **parameters}``, parameters as in SESSION_FORMAT.md
+                (missing ones take the kind's defaults); read as given, not validated.
+            fitted_over_youngs: the effect's parameters were fitted to surface data at some E
+                and move with E (``Trial.effects_youngs``, :meth:`at_youngs`): a stiffness so
+                fitted is known only over E and sets no scale; a body force stays.
+
+        Raises:
+            ValueError, TypeError: a parameter the kind reads is not numeric (gravity's ``g``).
+        """
+        return False
+
     def to_dict(self) -> dict:
         """``{"kind": ..., **parameters}`` as in truth.json / diagnosis.json (lists, not arrays)."""
         out = {"kind": self.kind}

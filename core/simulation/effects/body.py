@@ -30,6 +30,12 @@ class Gravity(Effect):
     def configure(self, builder):
         builder.body_force += builder.node_mass[:, None] * np.asarray(self.g)[None, :]
 
+    @classmethod
+    def sets_youngs_scale(cls, effect, *, fitted_over_youngs=False):
+        # a body force of known size: any nonzero component of g (default g when absent);
+        # it stays when E moves (at_youngs), fitted or not
+        return any(float(v) != 0.0 for v in effect.get("g", cls.g))
+
     def size(self, ctx):
         return float(np.linalg.norm(self.g))
 
@@ -358,6 +364,12 @@ class BaseCompliance(Effect):
     def at_youngs(self, ratio):
         # the surface measures stiffness / E (a softer gel on a softer pad sags the same)
         return BaseCompliance(stiffness=float(self.stiffness) * float(ratio))
+
+    @classmethod
+    def sets_youngs_scale(cls, effect, *, fitted_over_youngs=False):
+        # a foundation of fixed stiffness (Pa/m); one fitted to the surface is known only
+        # over E and moves with it (at_youngs)
+        return not fitted_over_youngs
 
     def size(self, ctx):
         return 1.0 / float(self.stiffness)
