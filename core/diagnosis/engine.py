@@ -322,7 +322,8 @@ def diagnose_prepared(
     # refitted in the model-form worlds, cannot be told from no effect
     # (worlds.absence_within) is withdrawn, and E is fitted again without it
     while True:
-        unexcluded = unexcluded_effects({k: (e.fit, e.statistic) for k, e in last_evidence.items()},
+        unexcluded = unexcluded_effects({k: (e.fit, e.statistic, e.reproduction.get("expected", 0.0), e.critical)
+                                         for k, e in last_evidence.items()},
                                         [c.kind for c, _, _ in claimed]) + gone
         youngs, E_ext, ext_effects, refits, worlds = youngs_of_extended(
             prepared, ev, cfg, executor, joint=joint, claimed=[(c, f) for c, f, _ in claimed],
