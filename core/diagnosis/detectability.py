@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
+from core.diagnosis.inference import train_validation_disagree
 from core.diagnosis.results import Detectability
 from core.diagnosis.sizing import POWER, fine_signature, growing_critical, min_sizes, signatures, world_min_size
 from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_dict
@@ -177,7 +178,7 @@ def unsettled(e, alpha: float) -> str | None:
             ``critical``, ``p_value`` and ``reproduction``, chi2 units).
         alpha: the family-wise level of a selection round (``DiagnosisConfig.alpha``).
     """
-    if math.isfinite(e.critical) and e.reproduction.get("expected", 0.0) >= e.critical > e.statistic:
+    if train_validation_disagree(e.reproduction.get("expected", 0.0), e.critical, e.statistic):
         return (f"cannot tell from this data: the fit on the train sequences found a change worth "
                 f"{e.reproduction['expected']:.0f} (chi2; a claim needs {e.critical:.0f}) but the "
                 f"validation sequences gave it {e.statistic:.0f}: train and validation disagree on this "

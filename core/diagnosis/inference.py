@@ -52,7 +52,7 @@ import numpy as np
 
 from core.diagnosis.nuisance import Nuisance
 
-__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "reproduction", "holm", "holm_adjusted", "tail_p_value",
+__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "reproduction", "train_validation_disagree", "holm", "holm_adjusted", "tail_p_value",
            "tail_quantile", "webb_weights"]
 
 _WEBB = np.array([-math.sqrt(1.5), -1.0, -math.sqrt(0.5), math.sqrt(0.5), 1.0, math.sqrt(1.5)])
@@ -235,6 +235,16 @@ def channel_worsening(before: np.ndarray, after: np.ndarray, channels: dict[str,
         crit = float(student.ppf(1.0 - level, K - 1))
         out[name] = {"delta_chi2": float(-2.0 * b.sum() / sigma2), "t": t, "critical": crit, "worse": bool(t > crit)}
     return out
+
+
+def train_validation_disagree(worth: float, critical: float, statistic: float) -> bool:
+    """Whether train and validation disagree on a kind: the change its fit made on train
+    was worth a claim (``worth``, :func:`reproduction`'s ``expected``, at least the finite
+    ``critical``) and the held-out drop ``statistic`` (T) did not confirm it (chi2 units).
+    Such a kind's size cannot be bounded from the data: it is answered "cannot tell"
+    (:func:`core.diagnosis.detectability.unsettled`) and E's interval holds it at its train
+    fit (:func:`core.diagnosis.youngs.unexcluded_effects`)."""
+    return math.isfinite(critical) and worth >= critical > statistic
 
 
 def reproduction(before: np.ndarray, after: np.ndarray, sigma2: float = 1.0) -> dict:

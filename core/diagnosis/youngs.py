@@ -20,6 +20,7 @@ import numpy as np
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
+from core.diagnosis.inference import train_validation_disagree
 from core.diagnosis.worlds import absence_within, claimed_worlds, refit_jointly
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import force_youngs, youngs_model_form
@@ -72,7 +73,7 @@ def unexcluded_effects(evidence: Mapping[str, tuple[Fit, float, float, float]],
             continue
         if statistic > 0:
             out.append((kind, fit.effect, f"as fitted on the train sequences, held-out drop {statistic:.0f}"))
-        elif math.isfinite(critical) and worth >= critical:
+        elif train_validation_disagree(worth, critical, statistic):
             out.append((kind, fit.effect, f"as fitted on the train sequences, where its change was worth {worth:.0f} "
                                           f"(a claim needs {critical:.0f}) and the held-out data gave it "
                                           f"{statistic:.0f}: train and validation disagree"))
