@@ -24,7 +24,9 @@ and featureless, we manually initialize the registration". Here (:func:`calibrat
   they do not (:func:`instrument_support`; the winner needs >= 10 points and twice the
   runner-up's). If the hints do not decide, a :class:`RegistrationError` asks for picked
   points. With a ``phantom.stl`` of any shape, the yaw the shape leaves open is scanned
-  instead (:func:`core.registration.symmetry.resolve_yaw`).
+  instead (:func:`core.registration.symmetry.resolve_yaw`), and the turned pose refined
+  only along the motions the shape fixes (:func:`core.registration.symmetry.truncated_icp`:
+  plain ICP would slide a dome's top along itself, off the instrument's yaw).
 * After ICP, z = 0 and the tilt are taken from the table plane (``anchor_table``,
   :func:`core.registration.initial_pose.anchor_to_table`): the top may sag.
 
@@ -45,7 +47,7 @@ from core.registration.cleaning import as_points, as_size, o3d_cloud
 from core.registration.initial_pose import anchor_to_table, auto_inits, check_footprint, phantom_cluster
 from core.registration.instrument import Hint, instrument_hints, instrument_support, probe_pose_phantom
 from core.registration.rigid import apply_transform, kabsch
-from core.registration.symmetry import resolve_yaw
+from core.registration.symmetry import resolve_yaw, truncated_icp
 
 __all__ = [
     "CameraFit",
@@ -349,7 +351,10 @@ def calibrate_camera(
                                    lambda T: target.evaluate(T, source, final)[0], probe_radius=r_probe,
                                    shaft_radius=shaft_radius)
             if not np.array_equal(T_turned, T_level):
-                T = _icp(src_pcd, target, T_turned)
+                # refined only along the motions the shape fixes: plain ICP would slide a
+                # curved top along itself again (a dome turns freely about its axis)
+                T = truncated_icp(T_turned, source, target.points, target.normals, target.tree,
+                                  stages=_ICP_STAGES)
                 fitness, rms, res = target.evaluate(T, source, final)
                 best = (best[0], T, fitness, rms, res, target.coverage(T, source, final))
         else:

@@ -14,6 +14,8 @@ That lobe (the
 contiguous yaws with at least half its support) must be at most ``max_lobe_deg`` wide
 and every yaw outside it must have at most half its support (>= 10 points and twice the
 runner-up's, the rule of the box's two-candidate case), or the yaw is not resolved.
+The turned pose is refined by :func:`truncated_icp`, which leaves alone the motions the
+shape does not fix (plain ICP would turn the dome off that yaw again).
 """
 
 from __future__ import annotations
@@ -26,7 +28,8 @@ from core.errors import RegistrationError
 from core.registration.cleaning import instrument_mask
 from core.registration.rigid import apply_transform
 
-__all__ = ["rotate_about_vertical", "surface_instrument_support", "shaft_yaw_correction", "resolve_yaw"]
+__all__ = ["rotate_about_vertical", "surface_instrument_support", "shaft_yaw_correction", "resolve_yaw",
+           "truncated_icp"]
 
 
 def rotate_about_vertical(T: np.ndarray, yaw: float, pivot_xy: np.ndarray) -> np.ndarray:
@@ -188,3 +191,60 @@ def shaft_yaw_correction(T: np.ndarray, hints: Sequence, surface_points: np.ndar
     if abs(num) == 0:
         return None
     return float(np.angle(num))
+
+
+def truncated_icp(T: np.ndarray, source_camera: np.ndarray, surface_points: np.ndarray,
+                  surface_normals: np.ndarray, tree, *, stages: Sequence[float] = (0.010, 0.005, 0.003),
+                  iterations: int = 30, rcond: float = 0.05) -> np.ndarray:
+    """Point-to-plane ICP (Chen & Medioni 1992) of ``T`` that moves only along the rigid
+    motions the surface determines.
+
+    Plain ICP of a curved top lets it slide along itself: a spherical cap turns about its
+    sphere's centre and any surface of revolution about its axis, so ICP from the yaw
+    :func:`resolve_yaw` took from the instrument drifts off it by an amount that depends
+    on floating-point summation order (2-7 degrees on a lab dome under gravity, a
+    different one each run with open3d's threads). Here each Gauss-Newton step is the
+    least-squares solution of the linearised point-to-plane residuals (six columns: the
+    translation and the rotation about the footprint's centre on the table, the latter
+    scaled by the footprint's half-width so all share units) truncated at ``rcond`` of the
+    largest singular value: a motion the shape leaves open is not taken, one it fixes is
+    refined (a dome keeps its yaw, a kidney-like ellipsoid refines it). Deterministic.
+
+    Args:
+        T: (4, 4) float ``T_phantom_camera`` (camera -> phantom).
+        source_camera: (N, 3) float reference cloud of the phantom, camera frame, m.
+        surface_points, surface_normals: (S, 3) rest-surface samples and their outward
+            unit normals, phantom frame, m; ``tree`` a KD-tree over ``surface_points``.
+        stages: correspondence distances, coarse to fine, m.
+        iterations: most Gauss-Newton steps per stage.
+        rcond: relative singular-value cutoff of each step's least squares.
+
+    Returns:
+        (4, 4) float64 refined ``T_phantom_camera``.
+    """
+    from scipy.spatial.transform import Rotation
+
+    T = np.asarray(T, dtype=np.float64).copy()
+    src = np.asarray(source_camera, dtype=np.float64)
+    lo, hi = surface_points.min(axis=0), surface_points.max(axis=0)
+    centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), lo[2]])
+    scale = 0.5 * float(np.max(hi[:2] - lo[:2]))
+    for dist in stages:
+        for _ in range(iterations):
+            q = apply_transform(T, src)
+            d, j = tree.query(q)
+            near = d < dist
+            if np.count_nonzero(near) < 10:
+                break
+            q, s, n = q[near], surface_points[j[near]], surface_normals[j[near]]
+            r = np.einsum("ij,ij->i", q - s, n)
+            J = np.column_stack([n, np.cross(q - centre, n) / scale])
+            step = np.linalg.lstsq(J, -r, rcond=rcond)[0]
+            t, w = step[:3], step[3:] / scale
+            A = np.eye(4)
+            A[:3, :3] = Rotation.from_rotvec(w).as_matrix()
+            A[:3, 3] = centre - A[:3, :3] @ centre + t
+            T = A @ T
+            if np.linalg.norm(t) < 1e-7 and np.linalg.norm(w) < 1e-6:
+                break
+    return T
