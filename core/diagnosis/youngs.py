@@ -185,25 +185,35 @@ def joint_youngs(fit: Fit, model_form: dict | None = None, unexcluded: Sequence[
 
 def with_untold_kinds(youngs: dict, answers: Mapping[str, str]) -> dict:
     """``youngs`` (diagnosis.json's ``youngs_modulus``) saying which kinds its interval
-    assumes absent: those these data cannot tell (``answers``: {kind: answer}). Any of
-    them may be there at any size, and most trade with E along the force (a compliant base
-    softens it as a softer phantom does; a robot offset deepens every press). Measured on
-    field seed 71 with a hidden compliant base answered "cannot tell": E 1.49-4.71 kPa for
-    the lab's 11.0. The interval is not widened by them (at their largest plausible sizes
-    E would never be identifiable); it is stated under that assumption, in
+    assumes absent: those these data cannot tell (``answers``: {kind: answer}) and that
+    it does not already hold at their train fit (``youngs["unexcluded_causes"]``, the
+    kinds train and validation disagree on: :func:`unexcluded_effects`). Any of them may
+    be there at any size, and most trade with E along the force (a compliant base softens
+    it as a softer phantom does; a robot offset deepens every press). Measured on field
+    seed 71 with a hidden compliant base answered "cannot tell": E 1.49-4.71 kPa for the
+    lab's 11.0. The interval is not widened by them (at their largest plausible sizes E
+    would never be identifiable); it is stated under that assumption, in
     ``assumes_absent`` and in ``reason``.
 
     Returns:
         a copy of ``youngs`` (unchanged without such kinds, or without a stated interval).
     """
+    held = {u["kind"] for u in youngs.get("unexcluded_causes") or ()}
     untold = sorted(k for k, a in answers.items() if a == "cannot_tell")
+    assumed = [k for k in untold if k not in held]
     if not untold or youngs.get("interval") is None:
         return youngs
-    out = dict(youngs, assumes_absent=untold)
-    names = ", ".join(k.replace("_", " ") for k in untold)
-    out["reason"] = (youngs.get("reason") or "") + (
-        f"; the interval assumes no {names}: these data cannot tell whether they are there, and each may "
-        f"move E (a compliant base softens the force as a softer phantom does)")
+    out = dict(youngs, assumes_absent=assumed)
+    reason = youngs.get("reason") or ""
+    if assumed:
+        names = ", ".join(k.replace("_", " ") for k in assumed)
+        reason += (f"; the interval assumes no {names}: these data cannot tell whether they are there, and each may "
+                   f"move E (a compliant base softens the force as a softer phantom does)")
+    within = [k for k in untold if k in held]
+    if within:
+        reason += (f"; it holds {', '.join(k.replace('_', ' ') for k in within)} at the train sequences' fit only: "
+                   "these data cannot bound its size")
+    out["reason"] = reason
     return out
 
 

@@ -109,3 +109,12 @@ def test_the_interval_says_which_kinds_it_assumes_absent():
     assert "assumes_absent" not in v  # a copy
     assert with_untold_kinds(v, {"gravity": "found"}) == v
     assert with_untold_kinds({"value": None, "interval": None, "identifiable": False}, answers)["interval"] is None
+    # a cannot-tell kind the interval holds at its train fit is not assumed absent
+    held = dict(v, unexcluded_causes=[{"kind": "kinematic_offset", "basis": "train and validation disagree",
+                                       "effect": {"kind": "kinematic_offset"}, "ratio": 1.3}])
+    out = with_untold_kinds(held, answers)
+    assert out["assumes_absent"] == ["base_compliance"]
+    assert "assumes no base compliance:" in out["reason"] and "assumes no base compliance, kinematic" not in out["reason"]
+    assert "holds kinematic offset at the train sequences' fit only" in out["reason"]
+    only = with_untold_kinds(held, {"kinematic_offset": "cannot_tell"})
+    assert only["assumes_absent"] == [] and "assumes no" not in only["reason"]
