@@ -214,7 +214,8 @@ class Effect:
         """Whether the effect, as given in a session's or trial's effect dict, sets a scale
         for E (Pa) without force data: a nonzero body force (gravity) or a foundation of
         fixed stiffness in Pa/m (base compliance). Every other kind leaves the quasi-static
-        model invariant to scaling E (:attr:`scales_with_youngs`) and sets none (default False).
+        model invariant to scaling E (:attr:`scales_with_youngs`) and sets none: the default
+        is ``not scales_with_youngs``, which the two kinds that set one refine per instance.
 
         Args:
             effect: ``{"kind": cls.kind, **parameters}``, parameters as in SESSION_FORMAT.md
@@ -226,7 +227,7 @@ class Effect:
         Raises:
             ValueError, TypeError: a parameter the kind reads is not numeric (gravity's ``g``).
         """
-        return False
+        return not cls.scales_with_youngs
 
     def to_dict(self) -> dict:
         """``{"kind": ..., **parameters}`` as in truth.json / diagnosis.json (lists, not arrays)."""
