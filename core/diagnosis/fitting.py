@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from core.diagnosis.evidence import Discrepancy, Evidence, Spec
+from core.diagnosis.inference import cluster_robust_covariance
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions
 from core.identification.model_form import ModelFormVariant
@@ -243,8 +244,14 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
     se = np.full(x.size, np.inf)
     if J is not None:
         try:
-            cov = sigma2 * np.linalg.inv(J.T @ J)
-            se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            var = np.diag(sigma2 * np.linalg.inv(J.T @ J))
+            # the model-form gap leaves residuals correlated over a poke: the cluster-robust
+            # covariance over the bootstrap's blocks, where it is the wider
+            blocks = eng.blocks("train")
+            robust = cluster_robust_covariance(J, r_x, blocks) if blocks.shape == r_x.shape else None
+            if robust is not None and np.all(np.isfinite(robust)):
+                var = np.maximum(var, np.diag(robust))
+            se = np.sqrt(np.maximum(var, 0.0))
         except np.linalg.LinAlgError:
             pass
     sp = spec(x)
