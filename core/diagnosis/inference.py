@@ -52,8 +52,8 @@ import numpy as np
 
 from core.diagnosis.nuisance import Nuisance
 
-__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "cluster_robust_covariance", "reproduction", "train_validation_disagree", "holm", "holm_adjusted", "tail_p_value",
-           "tail_quantile", "webb_weights"]
+__all__ = ["HeldOutTest", "channel_worsening", "claim_check", "cluster_robust_covariance", "reproduction",
+           "train_validation_disagree", "holm", "holm_adjusted", "tail_p_value", "tail_quantile", "webb_weights"]
 
 _WEBB = np.array([-math.sqrt(1.5), -1.0, -math.sqrt(0.5), math.sqrt(0.5), 1.0, math.sqrt(1.5)])
 
