@@ -155,7 +155,22 @@ def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
     # the same claim with worlds that keep it stiff stands
     assert absence_within(inc, fit, _worlds("inclusion", [0.035, 0.03, 0.027, 0.007, 0.3],
                                             [0.036, 0.031, 0.028, 0.008, 1.1])) is None
-    assert absence_within(inc, fit, None) is None  # no worlds fitted: the held-out test alone judged it
+    assert absence_within(inc, fit, None) is None  # no worlds fitted: its statistical interval excludes 1
+
+    # no worlds (no force data): the statistical interval alone. No-effect field seed 1208
+    # (no force) claimed a clock offset of -35 ms, interval -0.108 to 0.037 s: withdrawn;
+    # field seed 85's true 0.15 s offset, fitted at 0.114 s with 0.028-0.201, stands
+    clock = spaces["time_offset"]
+    why = absence_within(clock, _fit([-0.0355, 4.0], [0.0370, 0.01]), None)
+    assert why is not None and "cluster-robust" in why and "offset" in why
+    assert absence_within(clock, _fit([-0.0355, 4.0], [0.0370, 0.01]), {"worlds": []}) is not None
+    assert absence_within(clock, _fit([0.1145, 4.0], [0.0441, 0.01]), None) is None
+    # without worlds an inclusion is not judged on its ratio's marginal interval: at ratio 1
+    # its centre and radius are undefined (field seed 87, no force: a true inclusion 1.7 mm
+    # from the lab's centre, ratio 3.44, its ratio's interval 0.14-14.6 trading with the radius)
+    true_inc = _fit([0.0368, 0.0286, 0.0236, 0.0107, math.log10(3.44), 4.0], [4e-3, 4e-3, 2e-3, 3e-3, 0.51, 0.01])
+    assert absence_within(inc, true_inc, None) is None
+    assert absence_within(inc, true_inc, {"worlds": []}) is None
 
     grav = spaces["gravity"]
     g = _fit([3.54, 0.68, -20.57, 4.0], [0.06, 0.02, 0.06, 0.01])
