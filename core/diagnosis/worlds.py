@@ -325,8 +325,8 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
     """
     if not space.absent:
         return None
-    fitted_worlds = bool((worlds or {}).get("worlds"))
-    if not fitted_worlds and len(space.absent) < len(space.names):
+    n = len((worlds or {}).get("worlds") or ())
+    if not n and len(space.absent) < len(space.names):
         return None
     ivs = _variable_intervals(space, fit, worlds)
     shown = []
@@ -345,8 +345,7 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
         key, tr = (name[6:], lambda a: 10.0 ** a) if log else (name, lambda a: a)
         none = ("beyond its bound" if not math.isfinite(value) else f"{tr(value):.4g}")
         shown.append(f"{key} {tr(lo):.3g} to {tr(hi):.3g} (no effect: {none})")
-    n = len((worlds or {}).get("worlds", []))
-    if not fitted_worlds:
+    if not n:
         return ("withdrawn: its 95 % interval (cluster-robust over the held-out test's blocks) holds no effect: "
                 + "; ".join(shown) + ". The held-out test passed, but residuals shared over a poke leave it "
                 "unresolved from no effect")

@@ -159,7 +159,7 @@ def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
 
     # no worlds (no force data): the statistical interval alone. No-effect field seed 1208
     # (no force) claimed a clock offset of -35 ms, interval -0.108 to 0.037 s: withdrawn;
-    # field seed 85's true 0.15 s offset, fitted at 0.114 s with 0.028-0.201, stands
+    # field seed 85's true 0.15 s offset, its stated interval 0.028-0.201 s at stop 55, stands
     clock = spaces["time_offset"]
     why = absence_within(clock, _fit([-0.0355, 4.0], [0.0370, 0.01]), None)
     assert why is not None and "cluster-robust" in why and "offset" in why
