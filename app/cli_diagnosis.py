@@ -46,7 +46,7 @@ def cmd_diagnose(args) -> int:
     lo, hi = diag.gain_interval
     console.print(
         f"test error: base {diag.baseline_test_error * 1e3:.3f} mm, extended {diag.extended_test_error * 1e3:.3f} mm "
-        f"(gain {100 * diag.extended_gain:.1f} %, 95 % interval {100 * lo:.1f}-{100 * hi:.1f} %); noise floor {diag.noise_floor * 1e3:.3f} mm"
+        f"(gain {100 * diag.extended_gain:.1f} %, 95 % interval {100 * lo:.1f} to {100 * hi:.1f} %); noise floor {diag.noise_floor * 1e3:.3f} mm"
     )
     if diag.force:
         fz = diag.force

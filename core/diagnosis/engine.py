@@ -74,7 +74,7 @@ from core.diagnosis.patches import field_layout
 from core.diagnosis.results import CauseReport, Detectability, Diagnosis
 from core.diagnosis.rounds import CandidateEvidence, Round, assess_all, beyond_verdict, channel_masks, model_form_json
 from core.diagnosis.selection import choose
-from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error
+from core.diagnosis.summary import fit_fields, gain_interval, palpation, summary, test_error, unconfirmed_on_test
 from core.diagnosis.trials import drop_binned_points
 from core.diagnosis.worlds import absence_within, with_intervals
 from core.diagnosis.youngs import unexcluded_effects, with_untold_kinds, youngs_of_extended
@@ -382,6 +382,8 @@ def diagnose_prepared(
         fb, fe = ev.force_rms(base_test), ev.force_rms(ext_runs)
         force = {"noise_N": ev.force_sigma.tolist(), "base_youngs_modulus": E_base,
                  "baseline_test_rms_N": fb, "extended_test_rms_N": fe, "gain": 1.0 - fe / fb if fb > 0 else 0.0}
+    said = unconfirmed_on_test([c.kind for c, _, _ in claimed], gain, gain_iv, force["gain"] if force else None)
+    notes += [said] if said else []
     causes = []
     for (c, f, rep), runs_c in zip(claimed, cause_runs):
         err, _, _ = test_error(runs_c)

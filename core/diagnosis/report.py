@@ -222,7 +222,7 @@ def write_diagnosis(diag: Diagnosis, out: str | Path) -> Path:
     lo, hi = diag.gain_interval
     lines.append(
         f"Extended model ({', '.join(diag.extended_kinds) or 'nothing added'}): test error {_mm(diag.extended_test_error)} mm, "
-        f"gain {100 * diag.extended_gain:.1f} % (95 % interval {100 * lo:.1f}-{100 * hi:.1f} %, frame-block bootstrap); "
+        f"gain {100 * diag.extended_gain:.1f} % (95 % interval {100 * lo:.1f} to {100 * hi:.1f} %, frame-block bootstrap); "
         f"{_mm(diag.extended_test_error - diag.noise_floor)} mm above the noise floor remains."
     )
     if diag.force:
