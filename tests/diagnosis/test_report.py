@@ -1,9 +1,11 @@
-"""The diagnosis report's evidence plot with candidates whose score is undefined."""
+"""The diagnosis report: its evidence plot with candidates whose score is undefined, and its
+note on a claim the test sequences make worse."""
 
 import math
 from types import SimpleNamespace
 
 import matplotlib
+import numpy as np
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -30,8 +32,6 @@ def _test_sums(scale: float, wobble: float, seed: int):
     """Per-frame sums and counts of two 60-frame test sequences (blocks of 15 frames): the
     base model's sums at 1 mm per point, the extended model's ``scale`` times them with a
     relative per-frame ``wobble`` (uniform, centred)."""
-    import numpy as np
-
     rng = np.random.default_rng(seed)
     counts = [np.full(60, 400.0), np.full(60, 350.0)]
     base = [c * 1e-3 * (1 + 0.05 * rng.standard_normal(60)) for c in counts]
@@ -45,8 +45,6 @@ def test_a_claim_the_test_sequences_make_worse_is_said_so():
     lies below zero and the report's note says the test sequences do not confirm the claim
     (seed 1218's robot offset: gain -0.07 %, interval -0.2 to -0.0 %); a gain whose interval
     holds zero, no claim, or a better probe force on test leave no note."""
-    import numpy as np
-
     from core.diagnosis.summary import gain_interval, unconfirmed_on_test
 
     base, ext, blocks = _test_sums(1.01, 0.0, 0)
