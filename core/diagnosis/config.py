@@ -64,7 +64,7 @@ class DiagnosisConfig:
             candidate kinds, each kind's null distribution from the session itself).
         consistency_alpha: one-sided level at which a candidate that makes a channel of
             the held-out data (top face, side faces, force) worse is refused
-            (:func:`core.diagnosis.inference.channel_worsening`): a cause that is there
+            (:func:`core.diagnosis.claims.channel_worsening`): a cause that is there
             improves every channel it changes, a model-form gap fitted by a wrong cause
             is paid for in another channel. 0 turns the check off. It only refuses
             claims, so it cannot raise the false-claim rate ``alpha``; a real cause fails

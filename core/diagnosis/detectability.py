@@ -20,9 +20,9 @@ import math
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
+from core.diagnosis.claims import train_validation_disagree
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
-from core.diagnosis.inference import train_validation_disagree
 from core.diagnosis.results import Detectability
 from core.diagnosis.sizing import POWER, fine_signature, growing_critical, min_sizes, signatures, world_min_size
 from core.simulation.effects import EFFECT_KINDS, PhantomContext, effect_from_dict
@@ -169,7 +169,7 @@ def unsettled(e, alpha: float) -> str | None:
       sessions before this rule: a viscoelastic phantom's fit at p 0.004 and a 0.15 s clock
       offset's at p 0.004 were both reported "not found" above a smaller size. Where the
       drop passed its critical value but the change its fit makes did not (not reproduced,
-      :func:`core.diagnosis.inference.claim_check`), the reason says so: lab seed 78's hidden
+      :func:`core.diagnosis.claims.claim_check`), the reason says so: lab seed 78's hidden
       gravity (force, 4 x 6 s) explained 25799 against a critical 23722 with a change worth
       23026, and the text had read "a claim needs 23722".
 
@@ -213,7 +213,7 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
     A kind in ``refused`` ({kind: why}: its held-out evidence passed but it made a channel
     significantly worse) is "cannot tell" with no size, whatever its signature's size. A
     kind in ``small`` ({kind: why}: its held-out drop passed but the change its fit makes
-    is below what a claim needs, :func:`core.diagnosis.inference.claim_check`) is "not
+    is below what a claim needs, :func:`core.diagnosis.claims.claim_check`) is "not
     found" above its size, with that said in its ``why``. A kind whose last fit (``nulls``) moved the model by a change
     worth a claim (``S >= critical``) that the validation data did not confirm (``T <
     critical``) is "cannot tell" too: train and validation disagree on it, and the

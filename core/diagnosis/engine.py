@@ -23,7 +23,7 @@ Method (nested model comparison on held-out data, with the model-form gap as a n
    would be claimed; a drop far above ``S`` means validation asks for several times what
    train fitted, a residual of the kind's shape that does not reproduce), and no channel
    of the held-out data (top face, side faces, force) may get significantly worse
-   (:func:`core.diagnosis.inference.claim_check`). Measured on randomised field-lab
+   (:func:`core.diagnosis.claims.claim_check`). Measured on randomised field-lab
    sessions (before the rule): the spurious claims' fitted changes were worth 0.13-0.78
    of their critical values (six of seven; a friction claim on one no-effect session,
    3.4 times, is kept), the true gravity and compliant-base claims' 1.30 and 1.46 times.

@@ -47,17 +47,17 @@ class CauseReport:
             made significantly worse (``channels``).
         channels: per channel of the held-out data ("top", "sides", "force"): its chi2
             drop, the wild cluster t of its worsening, that t's critical value and
-            whether it was significantly worse (``inference.channel_worsening``).
+            whether it was significantly worse (``core.diagnosis.claims.channel_worsening``).
         reproduction: the held-out drop ("observed") against the drop the fitted change
-            itself would make ("expected"), chi2 (``inference.reproduction``).
+            itself would make ("expected"), chi2 (``core.diagnosis.claims.reproduction``).
         intervals: a claimed cause's 95 % intervals by parameter, statistical and model-form
             (:func:`core.diagnosis.worlds.parameter_intervals`; empty before they are known).
         model_form_bar: the largest held-out drop of the round's model at the ends of its
             model-form range, chi2 (diagnosis.json's ``model_form`` is the last round's), or
             None when its worlds were not simulated (no kind of the round reached the nested
-            test: none passed Holm's procedure and :func:`core.diagnosis.inference.claim_check`).
+            test: none passed Holm's procedure and :func:`core.diagnosis.claims.claim_check`).
         model_form_nested: for a kind that passed Holm's procedure and
-            :func:`core.diagnosis.inference.claim_check`, the nested test in the model-form
+            :func:`core.diagnosis.claims.claim_check`, the nested test in the model-form
             worlds (:func:`core.diagnosis.rounds.beyond_verdict`): ``{"world": the world that
             decided (the first that refused, else where the fit explained least), "delta_chi2":
             the fit's held-out drop added to that world, "passed": bool}``; None when it did

@@ -17,10 +17,11 @@ from typing import Callable
 
 import numpy as np
 
+from core.diagnosis.claims import channel_worsening, claim_check, reproduction
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import HeldOutTest, channel_worsening, claim_check, reproduction
+from core.diagnosis.inference import HeldOutTest
 from core.diagnosis.model_form import beyond_model_form, model_form_drops
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions, FieldRun
@@ -88,7 +89,7 @@ class CandidateEvidence:
     p_value: float
     critical: float
     channels: dict       # channel_worsening of the held-out residual, per channel
-    reproduction: dict   # inference.reproduction: the drop against the fitted change's own worth
+    reproduction: dict   # core.diagnosis.claims.reproduction: the drop against the fitted change's own worth
 
 
 def channel_masks(ev: Evidence, role: str) -> dict[str, np.ndarray]:
@@ -250,7 +251,7 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     """Whether a candidate whose held-out drop passed Holm's procedure is claimed: not when
     its fit sits at a bound of the kind's plausible range (:meth:`FitSpace.at_bound` of
     ``cand``: "at_bound", answer "cannot tell"), then
-    :func:`core.diagnosis.inference.claim_check` (reproduced at its fitted size, no channel
+    :func:`core.diagnosis.claims.claim_check` (reproduced at its fitted size, no channel
     made worse), then the nested test in the model-form worlds
     (:func:`core.diagnosis.model_form.beyond_model_form`):
     "model_form" (answer "cannot tell") when one of them explains its residual.

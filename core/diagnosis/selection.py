@@ -2,7 +2,7 @@
 
 One round of the diagnosis's greedy forward selection (:mod:`core.diagnosis.engine`) ends
 with every candidate kind's held-out drop ``T`` (chi2), its p-value and the claim checks
-(:func:`core.diagnosis.inference.claim_check`). :func:`choose` decides from those:
+(:func:`core.diagnosis.claims.claim_check`). :func:`choose` decides from those:
 
 1. The passing kind with the largest drop is the best.
 2. **A larger explanation that could not be confirmed.** A kind that explained more

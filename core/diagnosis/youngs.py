@@ -17,10 +17,10 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from core.diagnosis.claims import train_validation_disagree
 from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence
 from core.diagnosis.fitting import Fit, fit_candidate
-from core.diagnosis.inference import train_validation_disagree
 from core.diagnosis.worlds import absence_within, claimed_worlds, refit_jointly
 from core.identification.fit import fit_youngs_modulus
 from core.identification.model_form import force_youngs, youngs_model_form
