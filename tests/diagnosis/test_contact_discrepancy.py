@@ -85,3 +85,37 @@ def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session, evid
     assert set(moved.discrepancy) == set(ev.names["train"] + ev.names["validation"])
     assert abs(z_moved - OFFSET_Z) < 0.25 * OFFSET_Z, (z_held, z_moved)
     assert z_moved != z_held  # the fit did go on from the new correction
+
+
+def test_plain_trial_steps_give_the_fit_that_trials_with_derivatives_give(evidence, monkeypatch):
+    """``SPECULATIVE_TRIALS``: a fit whose shorter trial steps are plain replays (their
+    Jacobian made at the next iteration when one is taken) lands where the fit that replays
+    every trial step with its derivatives lands, with fewer replays with derivatives. The
+    robot offset's fit (three variables, steps tried in turn) from a start at its bounds
+    in x and z (10 mm off sideways and up), where long steps overshoot: measured here 7
+    replays with derivatives against 5, the same offset, the misfit equal to 1e-15."""
+    import core.diagnosis.fitting as fitting
+
+    prepared, ev = evidence
+    rnd = Round.build(ev, [], ev.cfg.youngs_modulus, ev.cfg, 0)
+    cand = EFFECT_KINDS["kinematic_offset"].fit_space(phantom_context(prepared, ev.names["train"]))
+    start = np.array([-0.01, 0.0, 0.01])
+    calls = {"n": 0}
+    jacobian_runs = Evidence.jacobian_runs
+
+    def counted(self, directions, role, **kw):
+        calls["n"] += 1
+        return jacobian_runs(self, directions, role, **kw)
+
+    monkeypatch.setattr(Evidence, "jacobian_runs", counted)
+    fits, n_jac = {}, {}
+    for speculative in (len(fitting.LM_DAMPING) + len(fitting.LM_DAMPING_SHORT), 1):
+        monkeypatch.setattr(fitting, "SPECULATIVE_TRIALS", speculative)
+        ev.cache.clear()  # every replay made afresh: the two fits share no run
+        calls["n"] = 0
+        fits[speculative] = fit_candidate(ev, cand, [], nuisance=rnd.nuisance, start=start, relinearise=0)
+        n_jac[speculative] = calls["n"]
+    every, first = fits[max(fits)], fits[1]
+    np.testing.assert_allclose(first.x, every.x, rtol=0, atol=1e-9)  # m: the same fit to round-off
+    assert first.train_rss == pytest.approx(every.train_rss, rel=1e-9)
+    assert n_jac[1] < n_jac[max(n_jac)], n_jac  # the shorter steps were tried, as plain replays
