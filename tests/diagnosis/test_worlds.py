@@ -139,20 +139,22 @@ def _worlds(kind, *xs):
 
 
 def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
-    """No-effect field seed 1115 (force columns): an inclusion claimed at ratio 2.29 that the
-    model-form worlds refitted at ratios 0.41-31.6 (measured, two of the worlds shown) holds
-    no inclusion in its interval and is withdrawn; the true gravity of field seed 0, whose
+    """A kind whose absence is a point is withdrawn when its worlds' interval holds no
+    effect: a gravity whose worlds reach g = 0; the true gravity of field seed 0, whose
     worlds kept g_z at -8.6 to -21.2 m/s^2 while g_x changed sign, stands, and so does a
-    compliant base whose worlds stay below the bound."""
+    compliant base whose worlds stay below the bound. An inclusion is not judged on its
+    ratio's marginal interval, with worlds or without (at ratio 1 its centre and radius
+    are undefined): no-effect field seed 1115's inclusion (ratio 2.29, worlds 0.41-31.6),
+    which this rule once withdrew, is refused by the nested held-out test in the worlds
+    since stop 49 (regenerated at stop 58: -30323 in its least favourable world), and field
+    seed 92's true one (4 x 12 s, force; worlds 0.0046-687) was withdrawn by it."""
     from core.diagnosis.candidates import candidates
 
     spaces = candidates((0.08, 0.04, 0.04), 0.005)
     inc = spaces["inclusion"]
     fit = _fit([0.0374, 0.0316, 0.0277, 0.00766, math.log10(2.287), 4.0], [1e-4, 4e-4, 5e-4, 5e-4, 0.014, 0.01])
-    why = absence_within(inc, fit, _worlds("inclusion", [0.003, 0.0271, 0.003, 0.003, 1.5],
-                                           [0.019, 0.0226, 0.019, 0.0167, -0.390]))
-    assert why is not None and "withdrawn" in why and "stiffness_ratio" in why
-    # the same claim with worlds that keep it stiff stands
+    assert absence_within(inc, fit, _worlds("inclusion", [0.003, 0.0271, 0.003, 0.003, 1.5],
+                                            [0.019, 0.0226, 0.019, 0.0167, -0.390])) is None
     assert absence_within(inc, fit, _worlds("inclusion", [0.035, 0.03, 0.027, 0.007, 0.3],
                                             [0.036, 0.031, 0.028, 0.008, 1.1])) is None
     assert absence_within(inc, fit, None) is None  # no worlds fitted: its statistical interval excludes 1
@@ -175,7 +177,8 @@ def test_a_claim_whose_worlds_hold_no_effect_is_withdrawn():
     grav = spaces["gravity"]
     g = _fit([3.54, 0.68, -20.57, 4.0], [0.06, 0.02, 0.06, 0.01])
     assert absence_within(grav, g, _worlds("gravity", [-2.88, 0.39, -8.59], [3.92, 1.56, -21.24])) is None
-    assert absence_within(grav, g, _worlds("gravity", [-2.88, -0.3, 0.5], [3.92, 1.56, -21.24])) is not None
+    why = absence_within(grav, g, _worlds("gravity", [-2.88, -0.3, 0.5], [3.92, 1.56, -21.24]))
+    assert why is not None and "withdrawn" in why and "g_z" in why
 
     base = spaces["base_compliance"]
     b = _fit([4.74, 3.9], [0.001, 0.01])
