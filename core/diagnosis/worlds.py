@@ -327,10 +327,10 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
             force (4 x 12 s), a hidden inclusion (ratio 6, 10 mm) that explained 34084 of the
             held-out data (critical 8885) and 17485 in the least favourable world, was
             withdrawn by the worlds' marginal rule (ratio 0.0046-687: the worlds refit it on
-            the train sequences, whose presses lie 10-16 mm from its centre, to 3-6 mm
-            spheres at the bound 31.6 or soft). The false inclusions of no-effect seeds 984
-            and 1115 that this rule once withdrew, regenerated, are now refused by the
-            nested test (-37186 and -30323 in their least favourable worlds).
+            the train sequences, whose top presses lie 13 and 15 mm from its centre in plan,
+            to 3-6 mm spheres at or near the bound 31.6, or soft). The false inclusions of
+            no-effect seeds 984 and 1115 that this rule once withdrew, regenerated, are now
+            refused by the nested test (-37186 and -30323 in their least favourable worlds).
 
     Returns:
         A sentence for the report, or None when the claim stands.
