@@ -182,6 +182,14 @@ def _target(space: FitSpace, j: int, value: float) -> float:
     return value if math.isfinite(value) else float(space.upper[j] if value > 0 else space.lower[j])
 
 
+def _absence_is_a_point(space: FitSpace) -> bool:
+    """Whether ``space.absent`` names every fit variable (gravity, the offsets, the probe
+    radius, friction, the base): only then is "no effect" a point that an interval can hold
+    (:func:`absence_within`); an inclusion's centre and radius, a relaxation time, are
+    undefined without the effect."""
+    return bool(space.absent) and len(space.absent) == len(space.names)
+
+
 def _carry_doubtful(claimed, x_fine: dict, x_own: dict) -> bool:
     """True when some claimed cause's fine fit is, in every variable where it vanishes,
     within :data:`CARRY_REACH` times its coarse-to-fine change of that value. Only for a
@@ -189,7 +197,7 @@ def _carry_doubtful(claimed, x_fine: dict, x_own: dict) -> bool:
     refits serve that judgement, and for an inclusion they cost a claim 300 s (measured on
     field seed 92, 4 x 12 s: six worlds of six variables with E on 25x9x9)."""
     for space, _ in claimed:
-        if not space.absent or len(space.absent) < len(space.names):
+        if not _absence_is_a_point(space):
             continue
         if all(abs(x_fine[space.kind][j] - _target(space, j, v))
                <= CARRY_REACH * abs(x_fine[space.kind][j] - x_own[space.kind][j])
@@ -335,7 +343,7 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
     Returns:
         A sentence for the report, or None when the claim stands.
     """
-    if not space.absent or len(space.absent) < len(space.names):
+    if not _absence_is_a_point(space):
         return None
     n = len((worlds or {}).get("worlds") or ())
     ivs = _variable_intervals(space, fit, worlds)
