@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.inference import HeldOutTest
 from core.diagnosis.model_form import mesh_world, model_form_worlds
-from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.sizing import world_min_size
 from core.simulation.effects import EFFECT_KINDS, PhantomContext
+from tests.diagnosis._rounds import stand_in_round
 
 L = 60  # entries of a residual vector per role
 SIGMA2 = 1e-2
@@ -41,14 +40,7 @@ class _Evidence:
 
 
 def _round(rng):
-    N_t, N_v = rng.normal(size=(L, 2)), rng.normal(size=(L, 2))
-    nuis = Nuisance(N_t, N_v, ("dent", "dent"), np.full(2, -np.inf), np.full(2, np.inf))
-    e_t, e_v = rng.normal(scale=0.1, size=L), rng.normal(scale=0.1, size=L)
-    blocks = np.arange(L) // 6
-    test = HeldOutTest(nuis, nuis.project(e_t), e_v, blocks, blocks, SIGMA2, replicates=999, seed=0)
-    base = np.full(L, 0.1)
-    return SimpleNamespace(fixed=[], youngs_modulus=5000.0, nuisance=nuis, test=test, r_train=base, r_validation=base,
-                           discrepancy=None)
+    return stand_in_round(rng, L, SIGMA2, 6)
 
 
 @pytest.mark.parametrize("fine_grid", [(25, 9, 9), None])
