@@ -32,7 +32,8 @@ if TYPE_CHECKING:  # the engine's round: its model, nuisances, held-out test and
     from core.diagnosis.rounds import Round
 
 # POWER and growing_critical: the size solve's, re-exported (core.diagnosis.sizing)
-__all__ = ["detectability", "unobservable", "unsettled", "undersized_claims", "with_dependents", "withdraw", "UNDERSIZED",
+__all__ = ["detectability", "held_by_inversion", "unobservable", "unsettled", "undersized_claims", "with_dependents",
+           "withdraw", "UNDERSIZED",
            "POWER", "growing_critical"]
 
 UNDERSIZED = 0.1
@@ -420,6 +421,45 @@ def with_dependents(claimed: list, whys: dict[str, str]) -> dict[str, str]:
         if c.kind not in out and rep.round is not None and rep.round > first[0]:
             out[c.kind] = (f"withdrawn: claimed in round {rep.round} on top of {first[1].replace('_', ' ')}, "
                            f"whose claim was withdrawn ({whys[first[1]]})")
+    return out
+
+
+def held_by_inversion(det: dict, inverted: list[str]) -> dict:
+    """``det`` ({kind: :class:`Detectability`}) with every "not found" answer turned to
+    "cannot tell" when the base model's replay turned tetrahedra inside out under the probe
+    on the sequences ``inverted`` (names; none: ``det`` unchanged).
+
+    A "not found above min_size" is the replay's own change of the data at that size,
+    simulated where the probe pressed; where the replay inverted elements there, that
+    change is no phantom's (the corotational law has no resistance to inversion, and a
+    neo-Hookean mesh that inverts is too coarse for the presses), so it bounds nothing.
+    Measured on the lab's dome with a hidden stiff inclusion (ratio 6, 10 mm; 4 x 12 s,
+    force, `scenario("inclusion", 3, shape="dome")`): the corotational replay inverted up
+    to 18 tetrahedra and answered "not found above ratio 2.16"; the neo-Hookean replay, which
+    inverted none, fitted the inclusion 0.3 mm from its centre and answered "cannot tell".
+    The size the replay gave is kept in ``parameters["inverted_replay_min_size"]``; claimed
+    ("found"), confounded and already "cannot tell" kinds are left as they are.
+
+    Args:
+        det: the detectability statements. inverted: the train and validation sequences
+            whose base-model replay inverted elements (``FieldRun.inverted`` > 0).
+
+    Returns:
+        A new dict of the same kinds.
+    """
+    if not inverted:
+        return det
+    out = {}
+    for kind, d in det.items():
+        if d.answer != "not_found":
+            out[kind] = d
+            continue
+        out[kind] = replace(
+            d, min_size=None, answer="cannot_tell", parameters={**d.parameters, "inverted_replay_min_size": d.min_size},
+            why=(f"cannot tell from this data: the replay turned tetrahedra inside out under the probe on "
+                 f"{', '.join(inverted)}, so its change of the data there is no phantom's, and the "
+                 f"{d.min_size:.3g} {d.unit} it would have claimed bounds nothing (replay with a law or a mesh "
+                 f"that does not invert: see the diagnosis's notes)"))
     return out
 
 

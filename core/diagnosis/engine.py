@@ -65,7 +65,8 @@ import numpy as np
 
 from core.diagnosis.candidates import phantom_context
 from core.diagnosis.config import DiagnosisConfig
-from core.diagnosis.detectability import detectability, undersized_claims, unobservable, with_dependents, withdraw
+from core.diagnosis.detectability import (detectability, held_by_inversion, undersized_claims, unobservable,
+                                         with_dependents, withdraw)
 from core.diagnosis.evidence import Evidence, Request
 from core.diagnosis.fields import NOISE_GROUPS
 from core.diagnosis.fitting import Fit, fit_candidate
@@ -307,6 +308,7 @@ def diagnose_prepared(
                             without=lambda kind: Round.build(ev, [e for e in fixed if e.get("kind") != kind], E_cur, cfg,
                                                              cfg.seed + 200),
                             claimed_critical={c.kind: rep.critical for c, _, rep in claimed if rep.critical is not None})
+        det = held_by_inversion(det, [r.sequence for r in all_base if r.inverted])
         lap("detectability")
         # E is refitted without them, and their fits go beside it as unclaimed causes
         claimed, reports, det, gone, said = withdraw(
