@@ -328,10 +328,9 @@ def detectability(ev: Evidence, rnd: "Round", ctx: PhantomContext, cfg: Diagnosi
             params["model_form_world"] = world
             params["replay_min_size"] = replay_size
         if cls.assume == "least_detectable" and len(options) > 1:
-            params["note"] = f"the least detectable of the {cls.assumed_over} tried" + (
-                " (the axes and both ways along the direction of least Fisher information in their span)"
-                if _directional(cls, options) else "")
+            params["note"] = f"the least detectable of the {cls.assumed_over} tried"
             if _directional(cls, options):
+                params["note"] += " (the axes and both ways along the direction of least Fisher information in their span)"
                 params["directions"] = [{**a, "min_size": s} for s, a in sized]
         beside_text = ""
         if cls.assume == "most_detectable" and best is not None:

@@ -152,8 +152,7 @@ def least_informative(rnd: "Round", sigs: list, directions: list, s: float, sigm
             F[i, j] = F[j, i] = 0.5 * (stat(eye[i] + eye[j]) - diag[i] - diag[j])
     if not np.all(np.isfinite(F)) or not np.any(F):
         return None
-    w, V = np.linalg.eigh(F)
-    c = V[:, 0]
+    c = np.linalg.eigh(F)[1][:, 0]  # eigenvalues ascending: the least informative first
     u = np.asarray(directions, dtype=np.float64).T @ c
     n = float(np.linalg.norm(u))
     if not n > 0:
