@@ -4,6 +4,7 @@ no longer held back by the base model's correction, which was measured on presse
 another depth."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -49,8 +50,11 @@ def evidence(offset_session):
 
 def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(evidence):
     """``discrepancy_at`` of the base model is the stored base discrepancy; of another model,
-    the coarse run corrected by it is that model's fine run exactly, where the base model's
-    correction leaves a difference that grows with the offset."""
+    the coarse run corrected by it is that model's fine run at the fine fits' step plus the
+    base model's change from the simulator's step to it (exactly), within a small fraction
+    of the model's fine run at the simulator's step, where the base model's correction
+    leaves a difference that grows with the offset (measured: 0.54 % of the fine run's
+    norm against 76 %)."""
     _, ev = evidence
     base = ev.discrepancy_at(Spec((), ev.cfg.youngs_modulus), ("train", "validation"))
     assert set(base) == set(ev.names["train"] + ev.names["validation"])
@@ -59,11 +63,34 @@ def test_a_coarse_run_corrected_at_its_own_model_is_the_fine_run(evidence):
     moved = Spec(({"kind": "kinematic_offset", "offset": [0.0, 0.0, OFFSET_Z]},), ev.cfg.youngs_modulus)
     disc = ev.discrepancy_at(moved, ("train",))
     assert set(disc) == set(ev.names["train"])
+    at = (("dt", ev.cfg.fine_fit_dt),)
     coarse, fine = ev.runs([moved], "train")[0], ev.runs([moved], "train", fine=True)[0]
+    fine_at = ev.runs([Spec(moved.effects, moved.youngs_modulus, simulation=at)], "train", fine=True)[0]
+    base_fine = ev.runs([Spec((), ev.cfg.youngs_modulus)], "train", fine=True)[0]
+    base_at = ev.runs([Spec((), ev.cfg.youngs_modulus, simulation=at)], "train", fine=True)[0]
+    for c, f, b, bs in zip(coarse, fine_at, base_fine, base_at):
+        np.testing.assert_allclose(ev.field(c, disc), f.field + (b.field - bs.field), atol=1e-12)
     here, fine_v = ev.vector(coarse, discrepancy=disc), ev.vector(fine, shifted=False)
-    np.testing.assert_allclose(here, fine_v, atol=1e-9 * np.abs(fine_v).max())
+    near = np.linalg.norm(here - fine_v) / np.linalg.norm(fine_v)
     off_by = np.linalg.norm(ev.vector(coarse) - fine_v) / np.linalg.norm(fine_v)
     assert off_by > 0.05, off_by  # the base model's correction is another one here
+    assert near < 0.05 * off_by, (near, off_by)
+
+
+def test_without_a_fine_fit_step_the_correction_is_the_fine_run_exactly(evidence):
+    """With ``fine_fit_dt`` None the fine run steps as the base model's did: the coarse run
+    corrected at its own model is that model's fine run exactly."""
+    _, ev = evidence
+    cfg = ev.cfg
+    try:
+        ev.cfg = replace(cfg, fine_fit_dt=None)
+        moved = Spec(({"kind": "kinematic_offset", "offset": [0.0, 0.0, OFFSET_Z]},), cfg.youngs_modulus)
+        disc = ev.discrepancy_at(moved, ("train",))
+        coarse, fine = ev.runs([moved], "train")[0], ev.runs([moved], "train", fine=True)[0]
+        here, fine_v = ev.vector(coarse, discrepancy=disc), ev.vector(fine, shifted=False)
+        np.testing.assert_allclose(here, fine_v, atol=1e-9 * np.abs(fine_v).max())
+    finally:
+        ev.cfg = cfg
 
 
 def test_a_robot_offset_is_fitted_as_the_fine_mesh_makes_it(offset_session, evidence):
