@@ -93,6 +93,9 @@ class DiagnosisConfig:
             error (fine minus coarse) again at its parameters and continues from there
             (:meth:`core.diagnosis.evidence.Evidence.discrepancy_at`; 0: the base model's
             throughout, which biased a 5 mm robot offset's fit to 0.77 mm on field seed 11).
+        contact_mesh_refinements: a claim of a kind that moves the contact must still explain
+            held-out data replayed on box grids with each of these times the fine grid's
+            cells per axis (:func:`core.diagnosis.model_form.beyond_finer_mesh`; empty: not checked).
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
             claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
             step from the coarse fit.
@@ -148,6 +151,7 @@ class DiagnosisConfig:
     lm_tolerance: float = 1.0
     fine_refit_iterations: int = 1
     contact_relinearisations: int = 2
+    contact_mesh_refinements: tuple[float, ...] = (1.25, 1.5)
     joint_refit_iterations: int = 3
     world_refit_iterations: int = 3
     max_causes: int = 3

@@ -55,13 +55,15 @@ def _run_bytes(run: "FieldRun") -> int:
 class Request(NamedTuple):
     """A request of :meth:`Evidence.runs_together`: ``models`` (:class:`Spec` or effect
     dicts; with ``jacobian``, :class:`Directions`) on every sequence of ``role``, with the
-    paper's per-frame error when ``paper``, on the fine grid when ``fine``."""
+    paper's per-frame error when ``paper``, on the fine grid when ``fine``, on ``grid`` (a
+    box phantom's (nx, ny, nz)) when given."""
 
     models: Sequence
     role: str
     paper: bool = False
     fine: bool = False
     jacobian: bool = False
+    grid: tuple | None = None
 
 
 @dataclass(frozen=True)
@@ -190,7 +192,8 @@ class Evidence:
         with self._lock:  # the map itself runs unlocked: other threads' runs go beside it
             for req in requests:
                 names = self.names[req.role]
-                grid = tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid else tuple(self.cfg.grid)
+                grid = (tuple(req.grid) if req.grid else tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid
+                        else tuple(self.cfg.grid))
                 if req.jacobian:
                     items = [(Spec(d.effects(d.theta), d.youngs(d.theta), law=d.law, poisson_ratio=d.poisson_ratio,
                                    stiffening=d.stiffening, simulation=d.simulation), d) for d in req.models]

@@ -22,7 +22,7 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest
-from core.diagnosis.model_form import beyond_model_form, model_form_drops
+from core.diagnosis.model_form import beyond_finer_mesh, beyond_model_form, model_form_drops
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions, FieldRun
 from core.simulation.effects import EFFECT_KINDS, FitSpace
@@ -254,7 +254,10 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     :func:`core.diagnosis.claims.claim_check` (reproduced at its fitted size, no channel
     made worse), then the nested test in the model-form worlds
     (:func:`core.diagnosis.model_form.beyond_model_form`):
-    "model_form" (answer "cannot tell") when one of them explains its residual.
+    "model_form" (answer "cannot tell") when one of them explains its residual; a kind that
+    moves the contact also on a mesh finer than the fine reference
+    (:func:`core.diagnosis.model_form.beyond_finer_mesh`), "model_form" when it explains
+    less than its critical value there.
 
     A fit at the edge of the range asked for more of the kind than a phantom plausibly
     holds: its residual is of another shape, which the kind takes up as far as it can.
@@ -282,6 +285,17 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     ok, label, t_w = beyond_model_form(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, e.fit.effects,
                                        rnd._model_form or {}, e.critical)
     nested = {"world": label or None, "delta_chi2": t_w if math.isfinite(t_w) else None, "passed": bool(ok)}
+    if ok and EFFECT_KINDS[cand.kind].moves_contact:
+        finer = beyond_finer_mesh(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, e.fit.effects, e.critical)
+        if finer is not None and not finer[0]:
+            _, mesh, t_m = finer
+            gain = f"{t_m:.0f} (chi2)" if math.isfinite(t_m) else "nothing (a run diverged)"
+            return ("model_form",
+                    f"cannot tell from this data: its fit explained {e.statistic:.0f} (chi2) of the held-out residual, "
+                    f"but replayed on {mesh} (finer than the fine reference the fit was corrected to) the same fit "
+                    f"explains {gain} where a claim needs {e.critical:.0f}: the dent it changes is the mesh's, and the "
+                    "data do not tell this kind from the mesh's resolution of the dent"), \
+                {"world": mesh, "delta_chi2": t_m if math.isfinite(t_m) else None, "passed": False}
     if ok:
         return None, nested
     gain = f"{t_w:.0f} (chi2)" if math.isfinite(t_w) else "nothing (a run diverged)"
