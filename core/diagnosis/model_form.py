@@ -206,7 +206,6 @@ def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     return True, least[0], least[1]
 
 
-
 def finer_meshes(ev: Evidence) -> list[tuple[int, int, int]]:
     """The box grids with each of ``cfg.contact_mesh_refinements`` times the fine grid's
     cells along every axis (31x11x11 and 37x13x13 for 25x9x9 at 1.25 and 1.5): empty
@@ -223,7 +222,8 @@ def beyond_finer_mesh(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     """Whether a cause that moves the contact (``Effect.moves_contact``: a robot offset, a
     probe radius) still explains held-out data on each mesh finer than the fine reference
     (:func:`finer_meshes`): the model and the model with the cause's fitted ``effects``
-    (unchanged) replayed there directly, at ``cfg.fine_fit_dt``, and the held-out drop
+    (unchanged) replayed there directly, at ``cfg.fine_fit_dt`` (else ``cfg.coarse_dt`` or the
+    simulator's 1/120 s, as any run off the fine grid), and the held-out drop
     between them judged as :func:`beyond_model_form` judges a world's (the bounded
     nuisances refitted on train). It passes when that drop is at least ``critical`` on
     every such mesh.
