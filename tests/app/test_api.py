@@ -42,6 +42,26 @@ def crash_worker(params, ctx):
     os._exit(params.code)
 
 
+class HoldParams(BaseModel):
+    """Parameters of the test-only job that secedes and holds until a file exists."""
+
+    flag: str
+
+
+def hold_job(params, ctx):
+    """A job that secedes from its worker thread (as a sweep does while its trials run),
+    reports its worker's process id and holds until ``params.flag`` exists (120 s at most)."""
+    from distributed import rejoin, secede
+
+    secede()
+    ctx.progress(0.1, f"pid {os.getpid()}")
+    deadline = time.monotonic() + 120.0
+    while not Path(params.flag).exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    rejoin()
+    return {"pid": os.getpid()}
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -56,6 +76,7 @@ def client(tmp_path_factory):
     cloudpickle.register_pickle_by_value(sys.modules[__name__])  # workers cannot import tests/
     registry = default_registry()
     registry.add(JobType("crash", CrashParams, crash_worker, "test only: kills its worker"))
+    registry.add(JobType("hold", HoldParams, hold_job, "test only: secedes and holds until a file exists"))
     data = tmp_path_factory.mktemp("workbench")
     settings = Settings(data_dir=data, viewer_port=_free_port(), progress_interval=0.1)
     with TestClient(create_app(settings, registry)) as c:
@@ -321,6 +342,32 @@ def test_a_worker_crash_fails_only_its_job(client, session_id):
     assert other["status"] == "done", other
     after = wait(client, submit(client, "sweep", session_id=session_id, youngs=[1e4], sequences=["seq03"])["id"])
     assert after["status"] == "done", after  # the cluster still works
+
+
+def test_seceded_jobs_do_not_share_a_worker(client, tmp_path):
+    """Three jobs that secede (as sweeps do) on the 2-worker cluster: two run, in two
+    different worker processes, and the third waits queued until one ends. Before the
+    job slot a seceded job freed its worker's thread and the third started beside it, so
+    a crash of either would have failed both."""
+    flag = tmp_path / "release"
+    jobs = [submit(client, "hold", flag=str(flag))["id"] for _ in range(3)]
+    deadline = time.monotonic() + 60.0
+    while True:
+        rows = [client.get(f"/api/jobs/{j}").json() for j in jobs]
+        holding = [r for r in rows if r["message"].startswith("pid ")]
+        if len(holding) >= 2 or time.monotonic() > deadline:
+            break
+        time.sleep(0.2)
+    assert len(holding) == 2, rows
+    time.sleep(2.0)  # time enough for a third to start, were it allowed
+    rows = [client.get(f"/api/jobs/{j}").json() for j in jobs]
+    holding = [r for r in rows if r["message"].startswith("pid ")]
+    assert len(holding) == 2, rows
+    assert len({r["message"] for r in holding}) == 2, rows  # two worker processes
+    assert [r["status"] for r in rows if not r["message"].startswith("pid ")] == ["queued"], rows
+    flag.write_text("go")
+    done = [wait(client, j) for j in jobs]
+    assert [d["status"] for d in done] == ["done"] * 3, done
 
 
 # ------------------------------------------------------------------ replay + viewer

@@ -10,7 +10,10 @@
 * Worker crash: the scheduler would re-run a task whose worker died. The task sets a
   ``started`` event first; a re-run that finds it set fails at once with
   :class:`WorkerCrashed`, so a crashing job fails alone while trial tasks of other jobs
-  that were on the dead worker are retried by Dask as usual.
+  that were on the dead worker are retried by Dask as usual. On the local cluster each
+  worker runs one job task at a time (:data:`JOB_SLOT`), seceded or not, so no other job
+  shares the dead worker's fate; on an existing scheduler, whose workers do not offer
+  the slot, two jobs can share a worker and a crash fails both.
 * Restart: a stopping server leaves its jobs ``interrupted`` (also done at start-up for
   jobs a killed server left behind, :func:`app.server.db.mark_interrupted`). On an
   external cluster, where a killed server's tasks outlive it, the new server cancels
@@ -39,7 +42,7 @@ from app.server.jobs.context import DaskChannel, JobCancelled, JobContext, Worke
 from app.server.jobs.registry import Registry
 from app.server.settings import Settings
 
-__all__ = ["execute_job", "JobRunner", "quiet_client_gc", "warm_imports", "WARM_IMPORTS"]
+__all__ = ["execute_job", "JobRunner", "quiet_client_gc", "warm_imports", "WARM_IMPORTS", "JOB_SLOT"]
 
 log = logging.getLogger(__name__)
 
@@ -59,6 +62,21 @@ Importing the packages in one thread before any job runs leaves nothing to race.
 (:attr:`app.server.jobs.registry.JobType.imports`)."""
 
 _import_lock = threading.Lock()
+
+JOB_SLOT = "tissuetwin_job"
+"""The Dask worker resource a job task holds while it runs, one per local worker.
+
+Why: a job that runs trials (sweep, fit, diagnose) secedes from its worker thread while
+they run (``worker_client``), and a seceded task no longer counts against
+``threads_per_worker``, so before 2026-12-01 a second job could start in the same worker
+process. When one of them killed it (a crash, out of memory), the scheduler re-ran both,
+and the innocent one failed with :class:`WorkerCrashed` by design: CI saw
+``test_a_worker_crash_fails_only_its_job`` fail that way once in about ten runs. A
+resource is held until the task ends, seceded or not (``distributed``'s worker state
+machine releases it on completion only), so with one slot per worker each worker process
+runs at most one job task; trial tasks ask for no resource and run anywhere. The price:
+at most ``Settings.workers`` jobs run at once and the rest wait ``queued`` (on two cores
+a third CPU-bound job would only slow the other two)."""
 
 
 def warm_imports(extra: tuple[str, ...] = ()) -> None:
@@ -227,6 +245,7 @@ class JobRunner:
                 # job errors reach the job rows through their futures, not these logs
                 dashboard_address=None, silence_logs=logging.CRITICAL,
                 env={"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"},
+                resources={JOB_SLOT: 1},  # one job task per worker process, seceded or not
             )
         self.client = Client(self.cluster)
         quiet_client_gc()
@@ -270,7 +289,7 @@ class JobRunner:
         future = self.client.submit(
             execute_job, token, job.id, job_type.run, job_type.params, job.params, job.artifact_dir,
             session_path, picked, self.settings.progress_interval, job_type.imports, key=f"{token}-job", pure=False,
-            retries=0,
+            retries=0, resources={JOB_SLOT: 1} if self.cluster is not None else None,
         )
         with self._lock:
             self._futures[job.id] = future
