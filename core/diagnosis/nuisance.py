@@ -51,7 +51,7 @@ import numpy as np
 
 from core.diagnosis.evidence import Evidence, Spec
 
-__all__ = ["Nuisance", "FreeBeside", "nuisance_columns", "variant", "VARIANTS", "BOUNDS"]
+__all__ = ["Nuisance", "FreeBeside", "nuisance_columns", "variant", "VARIANTS", "BOUNDS", "STIFFENED_LAW"]
 
 VARIANTS: dict[str, dict] = {
     "law": {"law": "stable_neo_hookean"},
@@ -62,6 +62,21 @@ VARIANTS: dict[str, dict] = {
 """Model-form variants of the base model whose change of the residual is a nuisance direction
 (the law's is the other law when the base model is itself replayed with this one: see
 :func:`variant`)."""
+
+
+STIFFENED_LAW: dict = {"law": "stable_yeoh", "stiffening": 1.0}
+"""The strain-stiffening end of the material law's model-form range (a world of
+:mod:`core.diagnosis.model_form`, alone, not at the corners): the stable neo-Hookean law plus
+a Yeoh-type term with k = 1 (``core.simulation.fem.pk1_stable_yeoh``), inside the range the
+E fit's model form states (Yeoh k up to 2, :data:`core.identification.model_form.VARIANTS`),
+at the round's E. Gels and tissue stiffen with strain, which neither the corotational nor
+the neo-Hookean law does; not a nuisance direction (a world only). Why: on a no-effect
+field-lab session with force (seed 1273: Yeoh k 2.5 on 19x7x7, Rayleigh stiffness damping
+0.238 s, 4 x 6 s) a Maxwell arm (4.75 s, stiffness ratio 0.068) explained 461 (chi2) of
+held-out data where a claim needed 312, 522 or more in every world of the two other laws,
+and was claimed; added to this world (which explains 744 of the residual) it explains -19.
+Replayed directly (a scratch script), the lab's own model took it to -20 while damping at
+0.238 or 0.3 s alone left it 327-506: the law's stiffening, not the damping gap."""
 
 
 def variant(name: str, cfg) -> dict:

@@ -123,7 +123,11 @@ def test_the_law_world_is_the_other_law_of_the_base_model():
     cfg = DiagnosisConfig()
     worlds = dict(model_form_worlds(SimpleNamespace(cfg=cfg)))
     assert worlds["law stable_neo_hookean"] == {"law": "stable_neo_hookean"}
+    assert worlds["law stable_yeoh k=1"] == {"law": "stable_yeoh", "stiffening": 1.0}
     nh = dict(model_form_worlds(SimpleNamespace(cfg=replace(cfg, law="stable_neo_hookean"))))
     assert nh.pop("law corotational") == {"law": "corotational"} and "law stable_neo_hookean" not in nh
     worlds.pop("law stable_neo_hookean")
-    assert nh == worlds and len(nh) == 6
+    assert nh == worlds and len(nh) == 7
+    # a base model that already stiffens has no stiffened world of itself
+    yeoh = dict(model_form_worlds(SimpleNamespace(cfg=replace(cfg, law="stable_yeoh"))))
+    assert not any(k.startswith("law stable_yeoh") for k in yeoh) and "law stable_neo_hookean" in yeoh

@@ -393,13 +393,15 @@ def test_model_form_ends_are_the_nuisance_bounds_in_physical_units():
     ev = SimpleNamespace(cfg=SimpleNamespace(nuisances=NUISANCES, poisson_ratio=0.44))
     every = dict(model_form_ends(ev))
     ends = {k: v for k, v in every.items() if ", " not in k}  # each variant alone
-    assert len(ends) == 7
-    # and every corner of the box: law either, damping, nu and contact at one end each
+    assert len(ends) == 8
+    # and every corner of the box: the law the base's or the neo-Hookean (the stiffened law alone only), damping,
+    # nu and contact at one end each
     corners = [v for k, v in every.items() if ", " in k]
     assert len(corners) == 16 and all(len(v["simulation"]) == 2 and "poisson_ratio" in v for v in corners)
-    assert {(v.get("law"), round(v["poisson_ratio"], 6)) + tuple(round(x, 6) for _, x in v["simulation"])
-            for v in corners} == {(law, nu, b, k) for law in (None, "stable_neo_hookean") for nu in (0.38, 0.485)
-                                  for b in (0.05, 0.3) for k in (3.8e5, 2e4)}
+    assert {(v.get("law"), v.get("stiffening", 0.0), round(v["poisson_ratio"], 6))
+            + tuple(round(x, 6) for _, x in v["simulation"])
+            for v in corners} == {law + (nu, b, k) for law in ((None, 0.0), ("stable_neo_hookean", 0.0))
+                                  for nu in (0.38, 0.485) for b in (0.05, 0.3) for k in (3.8e5, 2e4)}
     damping = sorted(v["simulation"][0][1] for k, v in ends.items() if k.startswith("rayleigh_stiffness"))
     assert damping == pytest.approx([0.05, 0.3])
     nu = sorted(v["poisson_ratio"] for k, v in ends.items() if k.startswith("Poisson"))
@@ -407,6 +409,7 @@ def test_model_form_ends_are_the_nuisance_bounds_in_physical_units():
     contact = sorted(v["simulation"][0][1] for k, v in ends.items() if k.startswith("contact"))
     assert contact == pytest.approx([2e4, 3.8e5])
     assert ends["law stable_neo_hookean"] == {"law": "stable_neo_hookean"}
+    assert ends["law stable_yeoh k=1"] == {"law": "stable_yeoh", "stiffening": 1.0}  # strain stiffening
     # a nuisance left out of the configuration is no bar either
     ev.cfg.nuisances = tuple(n for n in NUISANCES if n != "damping")
     assert not any(k.startswith("rayleigh") for k, _ in model_form_ends(ev))

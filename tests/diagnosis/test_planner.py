@@ -169,14 +169,14 @@ def test_a_plan_s_prediction_holds_for_the_weakest_model_form_world():
 
         def vector(self, run, shifted=True):
             spec, fine = run
-            fields = {k: getattr(spec, k) for k in ("law", "poisson_ratio", "simulation")
-                      if getattr(spec, k) not in (None, ())}
+            fields = {k: getattr(spec, k) for k in ("law", "poisson_ratio", "stiffening", "simulation")
+                      if getattr(spec, k) not in (None, (), 0.0)}
             name = mesh_world(self)[0] if fine else self.labels[repr(fields)]
             base = np.full(L, 0.3 if fine else 0.1)
             return base + (strength * self.change[name] if effect in spec.effects else 0.0)
 
     names = [name for name, _ in model_form_worlds(FakeEvidence({}))]
-    assert len(names) == 7
+    assert len(names) == 8
     names.append(mesh_world(FakeEvidence({}))[0])  # the fine mesh, its base its own
     # every world makes the replay's own change: q unchanged, no world named
     same = FakeEvidence({n: D_raw for n in names})
