@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Sequence
+from typing import Iterable, Sequence
 
 import numpy as np
 
@@ -98,8 +98,8 @@ def model_form_ends(ev: Evidence) -> list[tuple[str, dict]]:
     per = _variant_ends(ev)
     out = [end for ends in per.values() for end in ends]
     if len(per) > 1:
-        # the stiffened law alone only: at the corners it would add 8 worlds a round (+35 % of
-        # these runs); alone it refused seed 1273's spurious Maxwell arm (-19 where 312 were needed)
+        # the stiffened law alone only: at the corners it would add 8 worlds a round (a third
+        # more of these runs); alone it refused seed 1273's spurious Maxwell arm (-19 where 312 were needed)
         choices = [[end for end in ends if end[1] != STIFFENED_LAW] + [("", {})] if name == "law" else ends
                    for name, ends in per.items()]
         for combo in itertools.product(*choices):
@@ -192,23 +192,33 @@ def beyond_model_form(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     """
     ends = dict(model_form_ends(ev))
     worlds = [label for label, d in sorted(drops.items(), key=lambda kv: -kv[1]) if d > 0]
-    if not worlds:
-        return True, "", math.inf
-    least = ("", math.inf)
     fixed = tuple(fixed)
-    for i in range(0, len(worlds), BEYOND_CHUNK):
-        chunk = worlds[i: i + BEYOND_CHUNK]
-        specs = ([Spec(fixed, float(E), **ends[w]) for w in chunk]
-                 + [Spec(fixed + tuple(effects), float(E), **ends[w]) for w in chunk])
-        trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
-        n = len(chunk)
-        for j, label in enumerate(chunk):
-            t_w = nuis.held_out_drop((ev.vector(trains[j]), ev.vector(valids[j])),
-                                     (ev.vector(trains[n + j]), ev.vector(valids[n + j]))) / ev.sigma2
-            if t_w < critical:
-                return False, label, t_w
-            if t_w < least[1]:
-                least = (label, t_w)
+
+    def drops_in_worlds():  # simulated a chunk at a time, as the decision asks for them
+        for i in range(0, len(worlds), BEYOND_CHUNK):
+            chunk = worlds[i: i + BEYOND_CHUNK]
+            specs = ([Spec(fixed, float(E), **ends[w]) for w in chunk]
+                     + [Spec(fixed + tuple(effects), float(E), **ends[w]) for w in chunk])
+            trains, valids = ev.runs_together([Request(specs, "train"), Request(specs, "validation")])
+            n = len(chunk)
+            for j, label in enumerate(chunk):
+                yield label, nuis.held_out_drop((ev.vector(trains[j]), ev.vector(valids[j])),
+                                                (ev.vector(trains[n + j]), ev.vector(valids[n + j]))) / ev.sigma2
+
+    return _first_refusal(drops_in_worlds(), critical)
+
+
+def _first_refusal(drops: Iterable[tuple[str, float]], critical: float) -> tuple[bool, str, float]:
+    """The verdict of :func:`beyond_model_form` and :func:`beyond_finer_mesh` from their
+    ``(label, held-out drop)`` pairs, read in order: (False, label, drop) at the first drop
+    below ``critical``, else (True, the label where the drop was least, that drop;
+    ("", inf) when there were none)."""
+    least = ("", math.inf)
+    for label, t_w in drops:
+        if t_w < critical:
+            return False, label, t_w
+        if t_w < least[1]:
+            least = (label, t_w)
     return True, least[0], least[1]
 
 
@@ -256,14 +266,10 @@ def beyond_finer_mesh(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     specs = [Spec(tuple(fixed), float(E), simulation=sim), Spec(tuple(fixed) + tuple(effects), float(E), simulation=sim)]
     got = ev.runs_together([Request(specs, role, grid=g) for g in grids for role in ("train", "validation")])
     v = lambda runs: ev.vector(runs, shifted=False)  # noqa: E731  (the finer mesh's own fields, no correction)
-    least = ("", math.inf)
-    for i, g in enumerate(grids):
-        tr, va = got[2 * i], got[2 * i + 1]
+
+    def drop(tr, va) -> float:
         t_w = nuis.held_out_drop((v(tr[0]), v(va[0])), (v(tr[1]), v(va[1]))) / ev.sigma2
-        t_w = t_w if math.isfinite(t_w) else -math.inf
-        label = f"the finer {'x'.join(str(n) for n in g)} mesh"
-        if t_w < critical:
-            return False, label, t_w
-        if t_w < least[1]:
-            least = (label, t_w)
-    return True, least[0], least[1]
+        return t_w if math.isfinite(t_w) else -math.inf
+
+    return _first_refusal(((f"the finer {'x'.join(str(n) for n in g)} mesh", drop(got[2 * i], got[2 * i + 1]))
+                           for i, g in enumerate(grids)), critical)

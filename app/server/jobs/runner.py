@@ -71,7 +71,7 @@ they run (``worker_client``), and a seceded task no longer counts against
 ``threads_per_worker``, so before 2026-12-01 a second job could start in the same worker
 process. When one of them killed it (a crash, out of memory), the scheduler re-ran both,
 and the innocent one failed with :class:`WorkerCrashed` by design: CI saw
-``test_a_worker_crash_fails_only_its_job`` fail that way once in about ten runs. A
+``test_a_worker_crash_fails_only_its_job`` fail that way once (2026-11-30). A
 resource is held until the task ends, seceded or not (``distributed``'s worker state
 machine releases it on completion only), so with one slot per worker each worker process
 runs at most one job task; trial tasks ask for no resource and run anywhere. The price:
