@@ -44,9 +44,10 @@ __all__ = ["refit_jointly", "claimed_worlds", "parameter_intervals", "with_inter
 
 def refit_jointly(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs_modulus: float, *, fine: bool,
                   iterations: int, world: ModelFormVariant | None = None,
-                  differences: bool = False) -> tuple[list[tuple[FitSpace, Fit]], Fit | None]:
+                  differences: bool = False, youngs: bool = True) -> tuple[list[tuple[FitSpace, Fit]], Fit | None]:
     """The claimed causes refitted with log10 E on train: each cause with E in turn, the
-    others fixed (block coordinate descent, one pass).
+    others fixed (block coordinate descent, one pass); with ``youngs`` False, without E
+    (held at ``youngs_modulus``: without force data the surface does not fix it).
 
     Args:
         ev: the diagnosis's evidence. claimed: ``[(fit space, fit)]`` (``fit.x`` starts
@@ -63,27 +64,32 @@ def refit_jointly(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs_
     fits, last, E = list(claimed), None, float(youngs_modulus)
     for i, (c, f) in enumerate(fits):
         others = [e for j, (_, g) in enumerate(fits) if j != i for e in g.effects]
-        g = fit_candidate(ev, c, others, E=E, fit_youngs=True, start=np.asarray(f.x[:len(c.names)]), fine=fine,
+        g = fit_candidate(ev, c, others, E=E, fit_youngs=youngs, start=np.asarray(f.x[:len(c.names)]), fine=fine,
                           iterations=iterations, world=world, differences=differences)
         fits[i], last, E = (c, g), g, g.youngs_modulus
     return fits, last
 
 
 def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs_modulus: float, *,
-                   iterations: int, variants: Sequence[ModelFormVariant] = VARIANTS) -> dict | None:
+                   iterations: int, variants: Sequence[ModelFormVariant] = VARIANTS, youngs: bool = True) -> dict | None:
     """The claimed causes' variables and E refitted in each model-form world.
 
     Args:
         ev: the diagnosis's evidence (its train sequences; force data for E).
         claimed: ``[(fit space, fit)]`` of the claimed causes, refitted with E on the
-            replay's (fine) grid (:func:`refit_jointly`).
+            replay's (fine) grid (:func:`refit_jointly`), or without force data their fits
+            on the fine grid.
         youngs_modulus: that refit's E, Pa.
         iterations: Levenberg-Marquardt iterations of each world's refit per cause.
         variants: the worlds' laws and Poisson's ratios.
+        youngs: refit E with the causes (with force data); False holds it at
+            ``youngs_modulus`` in every world (without force data, where a displacement-
+            controlled probe leaves E to the body forces alone; every world's
+            ``youngs_modulus`` is then that E).
 
     Returns:
         ``{"worlds": [{"model": label, "youngs_modulus": Pa, "variables": {kind: list},
-        "parameters": {kind: SESSION_FORMAT parameters}}], "method": str}``, or None
+        "parameters": {kind: SESSION_FORMAT parameters}}], "method": str, "youngs_refitted": bool}``, or None
         without claimed causes, or when the replay's own coarse refit diverged (no
         coarse-to-fine change to carry the others by). A world whose refit diverged is
         left out. When the carry cannot be trusted near no effect (:data:`CARRY_REACH`),
@@ -106,7 +112,7 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
         # forward differences: the coarse grid's exact derivatives can be local to a
         # near-bifurcation (see fit_candidate), where a world's refit then takes no step
         fits, last = refit_jointly(ev, claimed, youngs_modulus, fine=False, iterations=iterations, world=w,
-                                   differences=True)
+                                   differences=True, youngs=youngs)
         ok = last is not None and math.isfinite(last.train_rss)
         return w, _point(fits, last) if ok else None
 
@@ -132,12 +138,13 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
         add(replace(w, grid=coarse_grid).label, x_w, lg_w)
         if fine and w is not own:
             carried[w] = ({k: spaces[k].clip(x_fine[k] + x_w[k] - x_own[k]) for k in x_w}, lg_fine + lg_w - lg_own)
-    method = ("the claimed causes refitted with log10 E in each world on the coarse grid (Levenberg-Marquardt, "
+    method = (f"the claimed causes refitted {'with log10 E' if youngs else 'at a fixed E (no force data)'} in each "
+              "world on the coarse grid (Levenberg-Marquardt, "
               f"{iterations} iterations per cause, forward-difference Jacobians), carried to the fine grid by the replay's own "
               "coarse-to-fine change")
     refined = {}
     if carried and _carry_doubtful(claimed, x_fine, x_own):
-        refined = _fine_worlds(ev, claimed, x_fine, youngs_modulus, iterations, carried, worlds)
+        refined = _fine_worlds(ev, claimed, x_fine, youngs_modulus, iterations, carried, worlds, youngs)
         method += ("; the coarse-to-fine change of a claimed cause was within a factor "
                    f"{CARRY_REACH:g} of where it vanishes, so worlds were refitted on the fine grid itself "
                    "(nearest to no effect first, until one holds no effect)")
@@ -146,7 +153,7 @@ def claimed_worlds(ev: Evidence, claimed: Sequence[tuple[FitSpace, Fit]], youngs
             add(replace(w, grid=fine_grid).label + " (refitted on the fine grid)", *refined[w])
         else:
             add(replace(w, grid=fine_grid).label + " (the replay's coarse-to-fine change)", x_c, lg_c)
-    return {"worlds": worlds, "method": method}
+    return {"worlds": worlds, "method": method, "youngs_refitted": bool(youngs)}
 
 
 CARRY_REACH = 2.0
@@ -207,7 +214,7 @@ def _carry_doubtful(claimed, x_fine: dict, x_own: dict) -> bool:
 
 
 def _fine_worlds(ev: Evidence, claimed, x_fine: dict, youngs_modulus: float, iterations: int, carried: dict,
-                 worlds: list) -> dict:
+                 worlds: list, youngs: bool = True) -> dict:
     """The carried worlds refitted on the fine grid (``x_fine``: the claimed causes' fine
     fits' variables by kind), nearest to no effect first (by their
     carried values), two at a time on a concurrent executor (this machine's cores), until a claimed cause's
@@ -232,7 +239,8 @@ def _fine_worlds(ev: Evidence, claimed, x_fine: dict, youngs_modulus: float, ite
     width = 2 if ev.executor.concurrent else 1
 
     def refit(w):
-        fits, last = refit_jointly(ev, claimed, youngs_modulus, fine=True, iterations=iterations, world=w)
+        fits, last = refit_jointly(ev, claimed, youngs_modulus, fine=True, iterations=iterations, world=w,
+                                   youngs=youngs)
         ok = last is not None and math.isfinite(last.train_rss)
         return w, _point(fits, last) if ok else None
 
@@ -315,7 +323,7 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
     Args:
         space: the cause's fit space (its ``absent`` declaration; none declared: None).
         fit: the cause's fit (``x``, ``se``). worlds: :func:`claimed_worlds`' result; None
-            or no worlds (without force data none are fitted): the statistical interval
+            or no worlds (``world_refit_iterations`` 0, or no refit converged): the statistical interval
             alone is judged. Its standard errors are cluster-robust over the held-out
             blocks (:func:`core.diagnosis.inference.cluster_robust_covariance`), so it can
             hold no effect where the held-out test, whose null treats the residual's
@@ -367,6 +375,7 @@ def absence_within(space: FitSpace, fit: Fit, worlds: dict | None) -> str | None
         return ("withdrawn: its 95 % interval (cluster-robust over the held-out test's blocks) holds no effect: "
                 + "; ".join(shown) + ". The held-out test passed, but residuals shared over a poke leave it "
                 "unresolved from no effect")
-    return ("withdrawn: refitted with E in the model-form worlds (other laws, Poisson's ratios and grids, "
+    how = "with E" if worlds.get("youngs_refitted", True) else "at the round's E (no force data)"
+    return (f"withdrawn: refitted {how} in the model-form worlds (other laws, Poisson's ratios and grids, "
             f"{n} in all), its 95 % interval holds no effect: " + "; ".join(shown)
             + ". These data cannot tell it from the replay model's own gap")

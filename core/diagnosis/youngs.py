@@ -249,8 +249,11 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
     model-form variants, beside each unclaimed cause the held-out data leaned towards
     (``unexcluded``, :func:`unexcluded_effects`; :func:`unexcluded_youngs`) and, with the
     claimed causes refitted with it, in each model-form world
-    (:func:`core.diagnosis.worlds.claimed_worlds`). Without force
-    data :func:`core.identification.fit_youngs_modulus` fits E with the claimed effects (a
+    (:func:`core.diagnosis.worlds.claimed_worlds`). Without force data the claimed causes
+    are refitted in the same model-form worlds with E held (the surface of a
+    displacement-controlled probe does not fix it), so that a claim the worlds cannot tell
+    from no effect is withdrawn there too, and
+    :func:`core.identification.fit_youngs_modulus` fits E with the claimed effects (a
     gravity at its physical 9.81 m/s^2, since the fit measures g / E; a claimed compliant
     base moving with E, since the surface measures its stiffness over E: held at its
     fitted Pa/m it set E's scale, measured on field seed 82 with a hidden base and no force,
@@ -305,6 +308,14 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             ev.simulations += len(unexcluded) * len(ev.names["train"])
         youngs = joint_youngs(e_fit, mf, moved, worlds)
     else:
+        if claimed and cfg.world_refit_iterations > 0:
+            # the same test of a claim as with force, E held: without force the surface does not fix it
+            say(0.89, "the claimed causes refitted in each model-form world")
+            worlds = claimed_worlds(ev, claimed, youngs_modulus, iterations=cfg.world_refit_iterations, youngs=False)
+            if any(absence_within(c, f, worlds) for c, f in claimed):
+                return ({"value": None, "interval": None, "identifiable": False,
+                         "reason": "a claimed cause was withdrawn; E is fitted again without it",
+                         "replay_grid_value_used": E_ext}, E_ext, effects, claimed, worlds)
         say(0.9, "fitting Young's modulus with the claimed causes")
         fit_effects = [({"kind": "gravity", "g": list(9.81 * np.asarray(e["g"]) / max(np.linalg.norm(e["g"]), 1e-12))}
                         if e["kind"] == "gravity" else e) for e in effects]

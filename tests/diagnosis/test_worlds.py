@@ -239,7 +239,7 @@ def test_worlds_are_refitted_on_the_fine_grid_when_the_carry_reaches_no_effect(m
     fine_radius = {("stable_yeoh", 0.44, 2.0): 4.95e-3, ("stable_yeoh", 0.44, 1.0): 5.09e-3}
     calls = []
 
-    def stand_in(ev_, claimed, E, *, fine, iterations, world=None, differences=False):
+    def stand_in(ev_, claimed, E, *, fine, iterations, world=None, differences=False, youngs=True):
         (space, _), = claimed
         key = (world.law, world.poisson_ratio, world.stiffening)
         calls.append((fine, key))
@@ -270,3 +270,45 @@ def test_worlds_are_refitted_on_the_fine_grid_when_the_carry_reaches_no_effect(m
     out = W.claimed_worlds(ev, [(base, _fit([4.71, 3.9], [0.001, 0.01]))], 1e4, iterations=3)
     assert calls and not any(fine for fine, _ in calls)
     assert all("refitted on the fine grid" not in w["model"] for w in out["worlds"])
+
+
+@pytest.mark.parametrize("hidden", [None, -9.81])
+def test_without_force_a_claim_is_refitted_in_the_worlds_at_a_held_e(tmp_path, hidden):
+    """Without force columns a claim faces the same model-form worlds as with them, E held
+    (the surface of a displacement-controlled probe does not fix it). Before, no worlds were
+    fitted without force and a claim was judged on its statistical interval alone: no-effect
+    field seed 1283 (no force, 4 x 6 s, a Yeoh k 1.84 lab) had a gravity of 0.8 m/s^2
+    claimed, g_z -1.46 to -0.12; its worlds put g_z at -1.46 to 0.67 and it was withdrawn.
+    Here, on the small lab: a gravity fitted on a no-effect session (measured: g_z -0.68
+    m/s^2 on the fine grid, g_y's statistical interval excluding 0, so that interval alone
+    keeps it) is withdrawn by its worlds (measured: g_z -1.08 to 0.13), before E is fitted;
+    the lab's hidden 9.81 m/s^2 stands, its worlds' g_z far from zero; every world's E is
+    the one given."""
+    from core.diagnosis.youngs import youngs_of_extended
+
+    effects = [] if hidden is None else [{"kind": "gravity", "g": [0.0, 0.0, hidden]}]
+    path = generate_session(tmp_path / "s", seed=5, preset=SHORT_SMALL, with_force=False, effects=effects)
+    prepared = prepare_session(path)
+    cfg = DiagnosisConfig()
+    ev = Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
+    ev.sigma2 = 1e-6
+    assert not ev.use_force
+    space = candidates(prepared.size, prepared.probe_radius)["gravity"]
+    E = 5000.0
+    fit = fit_candidate(ev, space, [], E=E, fine=True, iterations=4, start=np.array([0.0, 0.0, -1.0]))
+    if hidden is None:
+        assert absence_within(space, fit, None) is None  # its statistical interval alone keeps it
+        youngs, _, _, _, worlds = youngs_of_extended(prepared, ev, cfg, SerialExecutor(), joint=False,
+                                                     claimed=[(space, fit)], youngs_modulus=E, e_fit=None)
+        assert youngs["value"] is None and "withdrawn" in youngs["reason"]
+    else:  # the E fit after the worlds is the no-force fit of core.identification, tested there
+        worlds = claimed_worlds(ev, [(space, fit)], E, iterations=cfg.world_refit_iterations, youngs=False)
+    assert worlds is not None and worlds["youngs_refitted"] is False
+    assert len(worlds["worlds"]) == 1 + 2 * len(VARIANTS)
+    assert all(w["youngs_modulus"] == pytest.approx(E) for w in worlds["worlds"])
+    why = absence_within(space, fit, worlds)
+    if hidden is None:
+        assert why is not None and "no force data" in why
+    else:
+        assert why is None, why
+        assert max(w["variables"]["gravity"][2] for w in worlds["worlds"]) < 0.5 * hidden  # half the lab's g_z or more
