@@ -99,6 +99,10 @@ class DiagnosisConfig:
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
             claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
             step from the coarse fit.
+        nested_size_refit: in a model-form world where a candidate's fit, added unchanged,
+            explains less than its critical value, refit its size alone on train there and
+            judge that (:func:`core.diagnosis.model_form.beyond_model_form`'s ``resize``;
+            False: the test before 2026-12-01).
         joint_refit_iterations: with force data, Levenberg-Marquardt iterations of the
             claimed causes' refit with E on ``fine_grid`` (each cause with E in turn;
             :func:`core.diagnosis.worlds.refit_jointly`; 0: E alone beside them, one iteration).
@@ -152,6 +156,7 @@ class DiagnosisConfig:
     fine_refit_iterations: int = 1
     contact_relinearisations: int = 2
     contact_mesh_refinements: tuple[float, ...] = (1.25, 1.5)
+    nested_size_refit: bool = True
     joint_refit_iterations: int = 3
     world_refit_iterations: int = 3
     max_causes: int = 3

@@ -22,7 +22,7 @@ from core.diagnosis.config import DiagnosisConfig
 from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.fitting import Fit, fit_candidate
 from core.diagnosis.inference import HeldOutTest
-from core.diagnosis.model_form import beyond_finer_mesh, beyond_model_form, model_form_drops
+from core.diagnosis.model_form import beyond_finer_mesh, beyond_model_form, model_form_drops, refit_size
 from core.diagnosis.nuisance import Nuisance
 from core.diagnosis.trials import Directions, FieldRun
 from core.simulation.effects import EFFECT_KINDS, FitSpace
@@ -282,8 +282,12 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     if verdict is not None:
         return verdict, None
     rnd.model_form(ev)  # the worlds' drops, simulated once per round when first asked
+    def resize(fields: dict) -> list[dict] | None:  # the candidate's size refitted in a world that refuses it
+        return refit_size(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, cand, e.fit.x, fields)
+
     ok, label, t_w = beyond_model_form(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, e.fit.effects,
-                                       rnd._model_form or {}, e.critical)
+                                       rnd._model_form or {}, e.critical,
+                                       resize=resize if ev.cfg.nested_size_refit and cand.absent else None)
     nested = {"world": label or None, "delta_chi2": t_w if math.isfinite(t_w) else None, "passed": bool(ok)}
     if ok and EFFECT_KINDS[cand.kind].moves_contact:
         finer = beyond_finer_mesh(ev, rnd.fixed, rnd.youngs_modulus, rnd.nuisance, e.fit.effects, e.critical)

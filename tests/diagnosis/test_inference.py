@@ -1,6 +1,8 @@
 """The held-out test's null distribution, Holm's procedure and the detectability solve
 (core.diagnosis.inference), on synthetic linear problems where the truth is known."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -556,6 +558,78 @@ def test_the_nested_model_form_test_refuses_a_residual_a_world_explains_and_keep
     asked.clear()
     assert beyond_model_form(ev, [], 5000.0, none, [{"kind": "inclusion", "shape": a}], {nu_hi: -50.0}, critical)[0]
     assert not asked
+    # a fit that overshoots in a world (three times its residual, as a real Maxwell arm fitted
+    # for the replay's phantom added to a stiffer one) is refused unchanged and passes once
+    # its size is refitted there; the refit is asked with that world's fields
+    ev.diverge = False
+    resized = []
+
+    def resize_to(shape):
+        def resize(fields):
+            resized.append(fields)
+            return [{"kind": "inclusion", "shape": shape}]
+        return resize
+
+    ev = Ev({r: noise[r] + g + a for r in noise})
+    over = [{"kind": "inclusion", "shape": 3.0 * a}]
+    ok, world, t_w = beyond_model_form(ev, [], 5000.0, none, over, drops, critical)
+    assert not ok and world == law and t_w < 0
+    ok, world, t_w = beyond_model_form(ev, [], 5000.0, none, over, drops, critical, resize=resize_to(a))
+    assert ok and t_w == pytest.approx(min(in_law, in_nu), rel=1e-12)
+    assert resized and all(f in (labels[law], labels[nu]) for f in resized)
+    # a resize that finds nothing left (the world explained the residual) is still refused,
+    # and one that failed (None) leaves the unchanged fit's verdict
+    ev = Ev({r: noise[r] + g for r in noise})
+    gap = [{"kind": "gravity", "shape": g}]
+    ok, world, t_w = beyond_model_form(ev, [], 5000.0, none, gap, drops, critical, resize=resize_to(0.0 * g))
+    assert not ok and world == law and abs(t_w) < 1e-9
+    ok, world, t_w = beyond_model_form(ev, [], 5000.0, none, gap, drops, critical, resize=lambda fields: None)
+    assert not ok and world == law and t_w < 0
+
+
+def test_a_size_refit_scales_only_what_vanishes_with_the_effect_and_finds_the_size_on_train():
+    """core.diagnosis.model_form.along_size and refit_size: gravity's vector and a robot
+    offset scale about zero, a probe radius's excess about the nominal, an inclusion's log10
+    ratio about 0 with its centre and radius held, a Maxwell arm's ratio and a base's
+    stiffness by the factor itself (they vanish beyond a bound); and on train data holding
+    half of a fitted gravity's change, the refit finds the factor 0.5."""
+    from core.diagnosis.candidates import candidates
+    from core.diagnosis.model_form import SIZE_RANGE, along_size, refit_size
+
+    sp = candidates((0.08, 0.04, 0.04), 0.005)
+    half = math.log10(0.5)
+    assert along_size(sp["gravity"], np.array([1.0, -2.0, -8.0]), half) == pytest.approx([0.5, -1.0, -4.0])
+    assert along_size(sp["kinematic_offset"], np.array([1e-3, 0.0, -2e-3]), half) == pytest.approx([5e-4, 0.0, -1e-3])
+    assert along_size(sp["probe_radius"], np.array([0.007]), half) == pytest.approx([0.006])
+    inc = np.array([0.04, 0.02, 0.03, 0.008, math.log10(4.0)])
+    assert along_size(sp["inclusion"], inc, half) == pytest.approx([0.04, 0.02, 0.03, 0.008, math.log10(2.0)])
+    assert along_size(sp["viscoelasticity"], np.array([-0.2, 0.0]), half) == pytest.approx([-0.2, half])
+    assert along_size(sp["base_compliance"], np.array([4.5]), half) == pytest.approx([4.5 - half])
+    assert along_size(sp["gravity"], np.array([0.0, 0.0, -8.0]), 0.0) == pytest.approx([0.0, 0.0, -8.0])
+
+    rng = np.random.default_rng(3)
+    L = 400
+    shape = np.sin(np.linspace(0.0, 7.0, L))
+    data = rng.normal(scale=0.1, size=L) + 2.0 * shape  # the train residual of the world: half of g_z = -4's change
+    runs = []
+
+    class Ev:
+        def runs(self, specs, role):
+            assert role == "train"
+            (spec,) = specs
+            runs.append(spec)
+            g_z = spec.effects[-1]["g"][2]
+            return [[data - (-g_z) * shape]]
+
+        def vector(self, rs):
+            return rs[0]
+
+    none = Nuisance(np.zeros((L, 0)), np.zeros((L, 0)), ())
+    fields = {"law": "stable_neo_hookean"}
+    got = refit_size(Ev(), [], 5000.0, none, sp["gravity"], np.array([0.0, 0.0, -4.0]), fields)
+    assert got[0]["g"][2] == pytest.approx(-2.0, abs=0.05) and got[0]["g"][:2] == pytest.approx([0.0, 0.0])
+    assert len(runs) <= 8 and all(r.law == "stable_neo_hookean" for r in runs)
+    assert SIZE_RANGE[0] < half < SIZE_RANGE[1]
 
 
 def test_cluster_robust_covariance_matches_the_spread_of_a_fit_under_correlated_noise():
