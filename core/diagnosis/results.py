@@ -60,8 +60,9 @@ class CauseReport:
             :func:`core.diagnosis.claims.claim_check`, the nested test in the model-form
             worlds (:func:`core.diagnosis.rounds.beyond_verdict`): ``{"world": the world that
             decided (the first that refused, else where the fit explained least), "delta_chi2":
-            the fit's held-out drop added to that world, "passed": bool}``; None when it did
-            not run.
+            the fit's held-out drop added to that world (where the unchanged fit fell short
+            there, the drop of its size refitted there: ``DiagnosisConfig.nested_size_refit``),
+            "passed": bool}``; None when it did not run.
     """
 
     kind: str

@@ -303,10 +303,11 @@ def beyond_verdict(rnd: Round, ev: Evidence, e: CandidateEvidence,
     if ok:
         return None, nested
     gain = f"{t_w:.0f} (chi2)" if math.isfinite(t_w) else "nothing (a run diverged)"
+    sized = "the same fit, its size refitted there, " if ev.cfg.nested_size_refit and cand.absent else "the same fit "
     return ("model_form",
             f"cannot tell from this data: its fit explained {e.statistic:.0f} (chi2) of the held-out residual, but "
             f"added to a phantom with {label} (within the model-form gap's plausible range, which explains "
-            f"{rnd._model_form[label]:.0f} of it) the same fit explains {gain} where a claim needs "
+            f"{rnd._model_form[label]:.0f} of it) {sized}explains {gain} where a claim needs "
             f"{e.critical:.0f}: the data do not tell this kind from the base model's own form gap"), nested
 
 
