@@ -288,15 +288,18 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             e_fit = fit_candidate(ev, None, effects, E=youngs_modulus, fit_youngs=True, fine=bool(cfg.fine_grid),
                                   iterations=max(cfg.fine_refit_iterations, 1))
         E_ext = e_fit.youngs_modulus
-        if claimed and cfg.world_refit_iterations > 0:
-            say(0.9, "the claimed causes and Young's modulus refitted in each model-form world")
-            worlds = claimed_worlds(ev, claimed, E_ext, iterations=cfg.world_refit_iterations)
-            if any(absence_within(c, f, worlds) for c, f in claimed):
-                # the caller withdraws that claim and fits E again without it: E's model
-                # form with it would be thrown away
-                return ({"value": None, "interval": None, "identifiable": False,
-                         "reason": "a claimed cause was withdrawn; E is fitted again without it",
-                         "replay_grid_value_used": E_ext}, E_ext, effects, claimed, worlds)
+    if claimed and cfg.world_refit_iterations > 0:
+        # with force E is refitted with the causes in each world; without, held (the surface
+        # of a displacement-controlled probe does not fix it)
+        say(0.9, "the claimed causes" + (" and Young's modulus" if joint else "") + " refitted in each model-form world")
+        worlds = claimed_worlds(ev, claimed, E_ext, iterations=cfg.world_refit_iterations, youngs=joint)
+        if any(absence_within(c, f, worlds) for c, f in claimed):
+            # the caller withdraws that claim and fits E again without it: E's model
+            # form with it would be thrown away
+            return ({"value": None, "interval": None, "identifiable": False,
+                     "reason": "a claimed cause was withdrawn; E is fitted again without it",
+                     "replay_grid_value_used": E_ext}, E_ext, effects, claimed, worlds)
+    if joint:
         say(0.92, "Young's modulus under other laws, Poisson's ratios and grids")
         mf = youngs_model_form(prepared, effects, E_ext, executor=executor, element_size=cfg.element_size)
         ev.simulations += len(mf["variants"]) * len(ev.names["train"])
@@ -308,15 +311,7 @@ def youngs_of_extended(prepared: PreparedSession, ev: Evidence, cfg: DiagnosisCo
             ev.simulations += len(unexcluded) * len(ev.names["train"])
         youngs = joint_youngs(e_fit, mf, moved, worlds)
     else:
-        if claimed and cfg.world_refit_iterations > 0:
-            # the same test of a claim as with force, E held: without force the surface does not fix it
-            say(0.89, "the claimed causes refitted in each model-form world")
-            worlds = claimed_worlds(ev, claimed, youngs_modulus, iterations=cfg.world_refit_iterations, youngs=False)
-            if any(absence_within(c, f, worlds) for c, f in claimed):
-                return ({"value": None, "interval": None, "identifiable": False,
-                         "reason": "a claimed cause was withdrawn; E is fitted again without it",
-                         "replay_grid_value_used": E_ext}, E_ext, effects, claimed, worlds)
-        say(0.9, "fitting Young's modulus with the claimed causes")
+        say(0.92, "fitting Young's modulus with the claimed causes")
         fit_effects = [({"kind": "gravity", "g": list(9.81 * np.asarray(e["g"]) / max(np.linalg.norm(e["g"]), 1e-12))}
                         if e["kind"] == "gravity" else e) for e in effects]
         youngs = {"value": None, "interval": None, "identifiable": False, "reason": "not fitted"}
