@@ -94,8 +94,12 @@ class DiagnosisConfig:
             (:meth:`core.diagnosis.evidence.Evidence.discrepancy_at`; 0: the base model's
             throughout, which biased a 5 mm robot offset's fit to 0.77 mm on field seed 11).
         contact_mesh_refinements: a claim of a kind that moves the contact must still explain
-            held-out data replayed on box grids with each of these times the fine grid's
-            cells per axis (:func:`core.diagnosis.model_form.beyond_finer_mesh`; empty: not checked).
+            held-out data replayed on meshes each of these times finer than the fine
+            reference: box grids with that many times the fine grid's cells per axis, a
+            ``phantom.stl`` phantom's own mesh at the fine element size over it
+            (:func:`core.diagnosis.model_form.beyond_finer_mesh`), and such a kind's
+            ``min_size`` holds on them too (:func:`core.diagnosis.sizing.world_min_size`;
+            empty: neither).
         fine_refit_iterations: Levenberg-Marquardt iterations of the final refit of the
             claimed causes on ``fine_grid`` (0: keep the coarse fits); one exact-Jacobian
             step from the coarse fit.

@@ -56,7 +56,8 @@ class Request(NamedTuple):
     """A request of :meth:`Evidence.runs_together`: ``models`` (:class:`Spec` or effect
     dicts; with ``jacobian``, :class:`Directions`) on every sequence of ``role``, with the
     paper's per-frame error when ``paper``, on the fine grid when ``fine``, on ``grid`` (a
-    box phantom's (nx, ny, nz)) when given."""
+    box phantom's (nx, ny, nz)) when given; a ``phantom.stl`` phantom's mesh at
+    ``element_size`` (m) when given (``grid`` then only names the mesh in the cache)."""
 
     models: Sequence
     role: str
@@ -64,6 +65,7 @@ class Request(NamedTuple):
     fine: bool = False
     jacobian: bool = False
     grid: tuple | None = None
+    element_size: float | None = None
 
 
 @dataclass(frozen=True)
@@ -147,16 +149,21 @@ class Evidence:
     def spec(self, effects: Sequence[dict] = (), E: float | None = None, simulation: tuple = ()) -> Spec:
         return Spec(tuple(effects), float(E or self.cfg.youngs_modulus), simulation=tuple(simulation))
 
-    def trial(self, seq: str, spec: Spec, grid) -> Trial:
+    def trial(self, seq: str, spec: Spec, grid, element_size: float | None = None) -> Trial:
+        """The :class:`~core.identification.trials.Trial` of ``spec`` on sequence ``seq``
+        and the box ``grid``; a ``phantom.stl`` phantom's mesh at ``element_size`` (m) when
+        given, else at the fine reference's size on the fine grid and the replay's on
+        the others."""
         c = self.cfg
         coarse = c.fine_grid is not None and tuple(grid) != tuple(c.fine_grid)
         sim = SimulationConfig(dt=c.coarse_dt) if coarse and c.coarse_dt else SimulationConfig()
         if spec.simulation:
             sim = replace(sim, **dict(spec.simulation))
-        element_size = c.element_size
-        if self.prepared.stl_path is not None and c.fine_grid is not None \
-                and tuple(grid) == tuple(c.fine_grid):
-            element_size = self.fine_element_size  # any phantom: the fine mesh halves the element size
+        if element_size is None:
+            element_size = c.element_size
+            if self.prepared.stl_path is not None and c.fine_grid is not None \
+                    and tuple(grid) == tuple(c.fine_grid):
+                element_size = self.fine_element_size  # any phantom: the fine mesh halves the element size
         return Trial(sequence=seq, youngs_modulus=spec.youngs_modulus, poisson_ratio=spec.poisson_ratio or c.poisson_ratio,
                      grid=tuple(grid), law=spec.law or c.law, effects=spec.effects, simulation=sim, stiffening=spec.stiffening,
                      element_size=element_size)
@@ -194,6 +201,8 @@ class Evidence:
                 names = self.names[req.role]
                 grid = (tuple(req.grid) if req.grid else tuple(self.cfg.fine_grid) if req.fine and self.cfg.fine_grid
                         else tuple(self.cfg.grid))
+                h = None if req.element_size is None else float(req.element_size)
+                mesh = grid if h is None else (grid, h)  # the cache's name of the mesh
                 if req.jacobian:
                     items = [(Spec(d.effects(d.theta), d.youngs(d.theta), law=d.law, poisson_ratio=d.poisson_ratio,
                                    stiffening=d.stiffening, simulation=d.simulation), d) for d in req.models]
@@ -203,7 +212,7 @@ class Evidence:
                 for m, d in items:
                     row = []
                     for n in names:
-                        k = self._key(m, n, req.paper, grid)
+                        k = self._key(m, n, req.paper, mesh)
                         if d is not None:
                             k = k + ("jacobian", None if d.space is None else d.space.kind, d.fit_youngs)
                         row.append(k)
@@ -216,8 +225,8 @@ class Evidence:
                             self.repeated += k in self.cache.dropped
                             keys.append(k)
                             # the base model on the replay's own mesh: the inversion note's runs
-                            todo.append(FieldTrial(self.trial(n, m, grid), self.layout, req.paper, d,
-                                                   count_inverted=not m.effects and grid == tuple(self.cfg.grid)))
+                            todo.append(FieldTrial(self.trial(n, m, grid, h), self.layout, req.paper, d,
+                                                   count_inverted=not m.effects and mesh == tuple(self.cfg.grid)))
                     rows.append(row)
                 plans.append(rows)
         if todo:

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from typing import Callable, Iterable, Sequence
+from typing import Callable, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -23,7 +23,7 @@ from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.nuisance import BOUNDS, STIFFENED_LAW, VARIANTS, Nuisance, variant
 
 __all__ = ["model_form_worlds", "mesh_world", "model_form_ends", "model_form_drops", "beyond_model_form", "BEYOND_CHUNK",
-           "finer_meshes", "beyond_finer_mesh", "along_size", "refit_size", "SIZE_RANGE"]
+           "FinerMesh", "finer_meshes", "beyond_finer_mesh", "along_size", "refit_size", "SIZE_RANGE"]
 
 
 def _variant_ends(ev: Evidence) -> dict[str, list[tuple[str, dict]]]:
@@ -296,15 +296,39 @@ def _first_refusal(drops: Iterable[tuple[str, float]], critical: float) -> tuple
     return True, least[0], least[1]
 
 
-def finer_meshes(ev: Evidence) -> list[tuple[int, int, int]]:
-    """The box grids with each of ``cfg.contact_mesh_refinements`` times the fine grid's
-    cells along every axis (31x11x11 and 37x13x13 for 25x9x9 at 1.25 and 1.5): empty
-    without a fine grid or for a phantom given by ``phantom.stl`` (whose meshes are sized
-    by element, not by grid; not checked there yet)."""
-    if not ev.cfg.fine_grid or getattr(ev.prepared, "stl_path", None) is not None:
+class FinerMesh(NamedTuple):
+    """A mesh finer than the fine reference (:func:`finer_meshes`): its label, the box grid
+    it is (or, for a ``phantom.stl`` phantom, the box grid it stands for in the cache), and
+    a ``phantom.stl`` phantom's element size (m; None for the box)."""
+
+    label: str
+    grid: tuple[int, int, int]
+    element_size: float | None = None
+
+    def request(self, models, role: str) -> Request:
+        """The :class:`~core.diagnosis.evidence.Request` of ``models`` on ``role`` on this mesh."""
+        return Request(models, role, grid=self.grid, element_size=self.element_size)
+
+
+def finer_meshes(ev: Evidence) -> list[FinerMesh]:
+    """The meshes finer than the fine reference, one per ``cfg.contact_mesh_refinements``
+    factor k above 1: on the box, the grid with k times the fine grid's cells along every
+    axis (31x11x11 and 37x13x13 for 25x9x9 at 1.25 and 1.5); on a phantom given by
+    ``phantom.stl``, its own mesh at the fine reference's element size
+    (:attr:`Evidence.fine_element_size`, half the replay's mean edge) over k, the same
+    refinement. Empty without a fine grid."""
+    if not ev.cfg.fine_grid:
         return []
-    return [tuple(int(round((n - 1) * k)) + 1 for n in ev.cfg.fine_grid)
-            for k in ev.cfg.contact_mesh_refinements if k > 1.0]
+    out = []
+    for k in (k for k in ev.cfg.contact_mesh_refinements if k > 1.0):
+        grid = tuple(int(round((n - 1) * k)) + 1 for n in ev.cfg.fine_grid)
+        element = getattr(ev, "fine_element_size", None)
+        if getattr(ev.prepared, "stl_path", None) is not None and element:
+            h = float(element) / k
+            out.append(FinerMesh(f"the finer {h * 1e3:.2g} mm mesh", grid, h))
+        else:
+            out.append(FinerMesh(f"the finer {'x'.join(str(n) for n in grid)} mesh", grid))
+    return out
 
 
 def beyond_finer_mesh(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuisance", effects: Sequence[dict],
@@ -333,17 +357,16 @@ def beyond_finer_mesh(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
         first that refused, else the one where the cause explained least), its drop, chi2;
         -inf where a run diverged).
     """
-    grids = finer_meshes(ev)
-    if not grids:
+    meshes = finer_meshes(ev)
+    if not meshes:
         return None
     sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()
     specs = [Spec(tuple(fixed), float(E), simulation=sim), Spec(tuple(fixed) + tuple(effects), float(E), simulation=sim)]
-    got = ev.runs_together([Request(specs, role, grid=g) for g in grids for role in ("train", "validation")])
+    got = ev.runs_together([m.request(specs, role) for m in meshes for role in ("train", "validation")])
     v = lambda runs: ev.vector(runs, shifted=False)  # noqa: E731  (the finer mesh's own fields, no correction)
 
     def drop(tr, va) -> float:
         t_w = nuis.held_out_drop((v(tr[0]), v(va[0])), (v(tr[1]), v(va[1]))) / ev.sigma2
         return t_w if math.isfinite(t_w) else -math.inf
 
-    return _first_refusal(((f"the finer {'x'.join(str(n) for n in g)} mesh", drop(got[2 * i], got[2 * i + 1]))
-                           for i, g in enumerate(grids)), critical)
+    return _first_refusal(((m.label, drop(got[2 * i], got[2 * i + 1])) for i, m in enumerate(meshes)), critical)

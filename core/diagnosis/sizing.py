@@ -21,7 +21,7 @@ import numpy as np
 
 from core.diagnosis.evidence import Evidence, Request, Spec
 from core.diagnosis.inference import TAIL_MIN_COUNT
-from core.diagnosis.model_form import mesh_world, model_form_worlds
+from core.diagnosis.model_form import finer_meshes, mesh_world, model_form_worlds
 from core.diagnosis.nuisance import FreeBeside, Nuisance
 from core.simulation.effects import PhantomContext
 
@@ -314,7 +314,11 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
     and the largest is stated; solved at ``size``
     in the coarse worlds and once more at the size found (the fine mesh only then, one
     fine run per role instead of two: the detectability stage of lab gravity seed 0, 12 s
-    with force, 58 -> 40 s).
+    with force, 58 -> 40 s). A kind that moves the contact (``moves_contact``: a robot
+    offset, a probe radius) has the meshes finer than the fine reference as worlds too
+    (:func:`core.diagnosis.model_form.finer_meshes`, at that last step), since its claim
+    must hold on them (:func:`core.diagnosis.model_form.beyond_finer_mesh`): a size the
+    claim rule would refuse is not stated as one that would have shown.
 
     Why: a size stated from the replay's own signature assumes the phantom makes that
     signature. Measured on a field session (seed 52, a 7.5 mm probe recorded as 5 mm, force,
@@ -341,7 +345,10 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
     coarse = model_form_worlds(ev)
     mesh = mesh_world(ev)
     fine_w = [mesh] if mesh is not None else []
-    if not coarse and not fine_w:
+    # a kind that moves the contact is claimed only where it holds on the finer meshes too
+    # (:func:`core.diagnosis.model_form.beyond_finer_mesh`): its size must hold there
+    finer = finer_meshes(ev) if getattr(cls, "moves_contact", False) else []
+    if not coarse and not fine_w and not finer:
         return size, ""
     s_max = cls.strength(cls.max_size)
     fixed, E = tuple(rnd.fixed), rnd.youngs_modulus
@@ -355,6 +362,7 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
         # ~10 of 13x5x5's, bench_replay 569 vs 5770 steps/s; the coarse runs of the first
         # step's size are cached)
         with_fine = fine_w if step == 1 or own_fine else []
+        with_finer = finer if step == 1 or not (coarse or fine_w) else []
         eff = cls.sized(size, ctx, **assumed).to_dict()
         st = cls.strength(size)
         if st == 0:
@@ -363,13 +371,19 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
         specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in coarse]
                  + [Spec(fixed + (eff,), E, **f) for _, f in coarse])
         fine_specs = [Spec(fixed, E, **f) for _, f in with_fine] + [Spec(fixed + (eff,), E, **f) for _, f in with_fine]
+        sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()  # as beyond_finer_mesh runs them
+        finer_specs = [Spec(fixed, E, simulation=sim), Spec(fixed + (eff,), E, simulation=sim)]
         requests = [Request(specs, role) for role in roles]
         if fine_specs:
             requests += [Request(fine_specs, role, fine=True) for role in roles]
+        requests += [m.request(finer_specs, role) for m in with_finer for role in roles]
         out = ev.runs_together(requests)
         vec = {role: [ev.vector(run, discrepancy=rnd.discrepancy) for run in out[i]] for i, role in enumerate(roles)}
         vec_fine = ({role: [ev.vector(run, shifted=False) for run in out[2 + i]] for i, role in enumerate(roles)}
                     if fine_specs else {})
+        first_finer = 4 if fine_specs else 2
+        vec_finer = [{role: [ev.vector(run, shifted=False) for run in out[first_finer + 2 * j + i]]
+                      for i, role in enumerate(roles)} for j in range(len(with_finer))]
         D_t, D_v = (vec["train"][0] - rnd.r_train) / st, (vec["validation"][0] - rnd.r_validation) / st
         if own_fine:
             D_t = (vec_fine["train"][1] - vec_fine["train"][0]) / st
@@ -377,7 +391,8 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
         if not (np.all(np.isfinite(D_t)) and np.all(np.isfinite(D_v))):
             return found, label
         changes = [("", D_t, D_v)]
-        for names, runs in ((coarse, {r: v[1:] for r, v in vec.items()}), ([] if own_fine else with_fine, vec_fine)):
+        for names, runs in ((coarse, {r: v[1:] for r, v in vec.items()}), ([] if own_fine else with_fine, vec_fine),
+                            *(([(m.label, None)], v) for m, v in zip(with_finer, vec_finer))):
             n = len(names)
             for i, (name, _) in enumerate(names):
                 X_t = (runs["train"][n + i] - runs["train"][i]) / st
@@ -400,7 +415,7 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
         s, label = max(per, key=lambda x: x[0])  # the first of equals: the replay's own before a world
         found = cls.size_at(s)
         settled = abs(found - size) <= 0.05 * max(abs(size), 1e-12) or (found > cls.max_size and size >= cls.max_size)
-        if step == 1 or (settled and not fine_w):
+        if step == 1 or (settled and not fine_w and not finer):
             break
         if not settled:
             size = min(found, cls.max_size)
