@@ -22,7 +22,9 @@ class _Evidence:
     with the probe-radius effect, the size (m) times the change of its world."""
 
     def __init__(self, cfg, change_coarse, change_fine):
-        self.cfg, self.sigma2 = cfg, SIGMA2
+        # the stand-in makes the coarse and fine meshes only: no finer-mesh worlds (those are
+        # tested on real runs, test_contact_discrepancy.py and test_finer_meshes.py)
+        self.cfg, self.sigma2 = replace(cfg, contact_mesh_refinements=()), SIGMA2
         self.change = {False: change_coarse, True: change_fine}  # {fine: {role: (L,) per m}}
         self.fine_runs = 0
 
