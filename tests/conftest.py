@@ -47,3 +47,14 @@ def sample_session() -> Path:
 def small_session(tmp_path_factory) -> Path:
     """A `small` virtual-lab session with no effects (seed 3), generated once per test run."""
     return shared_session(tmp_path_factory, "small-s3", preset="small", seed=3)
+
+
+@pytest.fixture(scope="session")
+def small_dome_force_session(tmp_path_factory) -> Path:
+    """A `small` virtual-lab dome session with no effects (6 s sequences, seed 3, force
+    columns), generated once per test run (E's model form on a dome and the diagnosis's
+    finer meshes both replay it)."""
+    from core.lab.generate import PRESETS
+
+    return shared_session(tmp_path_factory, "small-dome-force-s3", preset=PRESETS["small"].with_duration(6.0), seed=3,
+                          shape="dome", with_force=True)

@@ -174,6 +174,12 @@ class DiagnosisConfig:
     sensitivities: bool = True
     use_force: bool | None = None
 
+    @property
+    def fine_step(self) -> tuple:
+        """``Spec.simulation`` of the runs at the fine fits' step: ``(("dt", fine_fit_dt),)``,
+        or ``()`` (the run's default step) without ``fine_fit_dt``."""
+        return (("dt", float(self.fine_fit_dt)),) if self.fine_fit_dt else ()
+
     def __post_init__(self):
         from core.errors import TissueTwinError
 

@@ -354,7 +354,7 @@ def diagnose_prepared(
     # shown on train and validation: the fine grid at the fits' step (the E fit's last
     # train run of the extended model is one of them); the test errors below step at the
     # simulator's own
-    step = (("dt", float(cfg.fine_fit_dt)),) if cfg.fine_fit_dt else ()
+    step = cfg.fine_step
     shown = [replace(m, simulation=step) for m in (base_spec, ext_spec if claimed else base_spec)]
     (base_train,), (base_val,), (ext_train,), (ext_val,) = ev.runs_together(
         [Request([m], role, fine=True) for m in shown for role in ("train", "validation")])

@@ -125,7 +125,7 @@ def fit_candidate(eng: Evidence, cand: FitSpace | None, fixed: list[dict], *, E:
         return np.concatenate([head, np.clip(x[nv:], lo_E, hi_E)])
 
     # fits on the fine grid step at cfg.fine_fit_dt (its reported runs at the simulator's default)
-    sim = (("dt", float(eng.cfg.fine_fit_dt)),) if fine and eng.cfg.fine_fit_dt else ()
+    sim = eng.cfg.fine_step if fine else ()
 
     material = {} if world is None else {"law": world.law, "poisson_ratio": world.poisson_ratio,
                                          "stiffening": world.stiffening}

@@ -78,7 +78,7 @@ def mesh_world(ev: Evidence) -> tuple[str, dict] | None:
     more, and the diagnosis said "not found above 4.32 mm" of a 5 mm difference it missed."""
     if "mesh" not in ev.cfg.nuisances or not ev.cfg.fine_grid:
         return None
-    sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()
+    sim = ev.cfg.fine_step
     element = getattr(ev, "fine_element_size", None)  # a phantom.stl's fine mesh: half the mean edge
     label = (f"the finer mesh ({element * 1e3:.2g} mm elements)" if element
              else f"the {'x'.join(str(n) for n in ev.cfg.fine_grid)} mesh")
@@ -319,11 +319,11 @@ def finer_meshes(ev: Evidence) -> list[FinerMesh]:
     refinement. Empty without a fine grid."""
     if not ev.cfg.fine_grid:
         return []
+    element = getattr(ev, "fine_element_size", None)  # set for a phantom.stl phantom only
     out = []
     for k in (k for k in ev.cfg.contact_mesh_refinements if k > 1.0):
         grid = tuple(int(round((n - 1) * k)) + 1 for n in ev.cfg.fine_grid)
-        element = getattr(ev, "fine_element_size", None)
-        if getattr(ev.prepared, "stl_path", None) is not None and element:
+        if element:
             h = float(element) / k
             out.append(FinerMesh(f"the finer {h * 1e3:.2g} mm mesh", grid, h))
         else:
@@ -360,7 +360,7 @@ def beyond_finer_mesh(ev: Evidence, fixed: Sequence[dict], E: float, nuis: "Nuis
     meshes = finer_meshes(ev)
     if not meshes:
         return None
-    sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()
+    sim = ev.cfg.fine_step
     specs = [Spec(tuple(fixed), float(E), simulation=sim), Spec(tuple(fixed) + tuple(effects), float(E), simulation=sim)]
     got = ev.runs_together([m.request(specs, role) for m in meshes for role in ("train", "validation")])
     v = lambda runs: ev.vector(runs, shifted=False)  # noqa: E731  (the finer mesh's own fields, no correction)

@@ -76,7 +76,7 @@ def signatures(ev: Evidence, rnd: "Round", effects: list[dict], fine: bool = Fal
     if not effects:
         return []
     if fine:
-        sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()
+        sim = ev.cfg.fine_step
         specs = [Spec(tuple(rnd.fixed), rnd.youngs_modulus, simulation=sim)] + [
             Spec(tuple(rnd.fixed) + (e,), rnd.youngs_modulus, simulation=sim) for e in effects]
         trains, valids = ev.runs_together([Request(specs, "train", fine=True), Request(specs, "validation", fine=True)])
@@ -371,7 +371,7 @@ def world_min_size(ev: Evidence, rnd: "Round", cls, ctx: PhantomContext, assumed
         specs = ([Spec(fixed + (eff,), E)] + [Spec(fixed, E, **f) for _, f in coarse]
                  + [Spec(fixed + (eff,), E, **f) for _, f in coarse])
         fine_specs = [Spec(fixed, E, **f) for _, f in with_fine] + [Spec(fixed + (eff,), E, **f) for _, f in with_fine]
-        sim = (("dt", float(ev.cfg.fine_fit_dt)),) if ev.cfg.fine_fit_dt else ()  # as beyond_finer_mesh runs them
+        sim = ev.cfg.fine_step  # as beyond_finer_mesh runs them
         finer_specs = [Spec(fixed, E, simulation=sim), Spec(fixed + (eff,), E, simulation=sim)]
         requests = [Request(specs, role) for role in roles]
         if fine_specs:

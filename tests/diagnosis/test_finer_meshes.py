@@ -4,8 +4,9 @@ contact kind's ``min_size`` must too (``world_min_size``). On the box they are t
 31x11x11 and 37x13x13 (``tests/diagnosis/test_contact_discrepancy.py``); on any other
 shape they are the phantom's own mesh at the fine element size over 1.25 and 1.5.
 
-One dome session of the virtual lab (6 s sequences, seed 3, force columns), replayed at a
-coarse 8 mm element size so that the finer meshes stay small (the fine reference 4 mm).
+The run's shared dome session (``small_dome_force_session``: 6 s sequences, seed 3, force
+columns), replayed at a coarse 8 mm element size so that the finer meshes stay small (the
+fine reference 4 mm).
 """
 
 from __future__ import annotations
@@ -18,24 +19,17 @@ ELEMENT = 0.008
 
 
 @pytest.fixture(scope="module")
-def dome_evidence(tmp_path_factory):
+def dome_evidence(small_dome_force_session):
     """(prepared dome session, Evidence at ELEMENT with its fine reference)."""
     from core.diagnosis.config import DiagnosisConfig
     from core.diagnosis.evidence import Evidence
     from core.diagnosis.patches import field_layout
     from core.identification.execution import SerialExecutor
-    from core.lab import generate_session
-    from core.lab.generate import PRESETS
     from core.preparation import prepare_session
 
-    root = tmp_path_factory.mktemp("dome-finer")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("TISSUETWIN_CACHE_DIR", str(root / "cache"))
-        path = generate_session(root / "session", preset=PRESETS["small"].with_duration(6.0), seed=3, shape="dome",
-                                with_force=True)
-        prepared = prepare_session(path)
-        cfg = DiagnosisConfig(element_size=ELEMENT)
-        yield prepared, Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
+    prepared = prepare_session(small_dome_force_session)
+    cfg = DiagnosisConfig(element_size=ELEMENT)
+    return prepared, Evidence(prepared, cfg, SerialExecutor(), field_layout(prepared, cfg))
 
 
 def test_a_dome_s_finer_meshes_are_its_own_at_smaller_elements_and_converge(dome_evidence):

@@ -2,8 +2,8 @@
 replayed on the phantom's own mesh (at the replay's element size and at half its mean
 edge), not on a box of the phantom's bounding size.
 
-One dome session of the virtual lab (6 s sequences, seed 3, force columns; ~15 s) with the
-module's own cache folder.
+One dome session of the virtual lab (6 s sequences, seed 3, force columns; ~15 s; the run's
+shared ``small_dome_force_session``) prepared with the module's own cache folder.
 """
 
 from __future__ import annotations
@@ -13,18 +13,14 @@ import pytest
 
 
 @pytest.fixture(scope="module")
-def dome(tmp_path_factory):
+def dome(small_dome_force_session, tmp_path_factory):
     """(prepared dome session, one train sequence's name)."""
-    from core.lab import generate_session
-    from core.lab.generate import PRESETS
     from core.preparation import prepare_session
 
     root = tmp_path_factory.mktemp("dome-mf")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("TISSUETWIN_CACHE_DIR", str(root / "cache"))
-        path = generate_session(root / "session", preset=PRESETS["small"].with_duration(6.0), seed=3, shape="dome",
-                                with_force=True)
-        prepared = prepare_session(path)
+        prepared = prepare_session(small_dome_force_session)
         name = next(n for n, s in prepared.sequences.items() if s.role == "train")
         yield prepared, name
 
